@@ -1,0 +1,1 @@
+"""What an operator watches: the release/QA page of a store (links to the Dask dashboard)."""

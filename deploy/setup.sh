@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# Set up handedit on a fresh Debian machine with Python 3.11:
+#   system libraries for offscreen rendering (Mesa EGL), a virtualenv in .venv, the package.
+# Usage: bash deploy/setup.sh [--test]     (--test adds the test dependencies)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+extras=""
+[ "${1:-}" = "--test" ] && extras="[test]"
+PY=${PYTHON:-python3.11}
+
+# Debian packages: EGL + Mesa for pyrender offscreen, venv support for the system Python.
+need=()
+for pkg in libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libgomp1; do
+  dpkg -s "$pkg" >/dev/null 2>&1 || need+=("$pkg")
+done
+command -v "$PY" >/dev/null 2>&1 || need+=(python3.11)
+"$PY" -m venv --help >/dev/null 2>&1 || need+=(python3.11-venv)
+if [ ${#need[@]} -gt 0 ]; then
+  SUDO=""
+  [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+  echo "installing Debian packages: ${need[*]}"
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${need[@]}" >/dev/null
+fi
+
+[ -x .venv/bin/python ] || "$PY" -m venv .venv
+.venv/bin/python -m pip install -q --upgrade pip
+.venv/bin/python -m pip install -q -e ".${extras}"
+echo "handedit is set up in $(pwd)/.venv"

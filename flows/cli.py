@@ -1,0 +1,198 @@
+"""The ``handedit`` command.
+
+    handedit curate --demo --out runs/demo        synthetic clips, local Dask cluster
+    handedit curate --video clip.mp4 [--keypoints kp.npz] --out DIR
+    handedit curate --config run.yaml              a full CurateConfig (deployments use this)
+    handedit ledger DIR                            the rejection ledger as a table
+    handedit status DIR                            frames per stage and status
+    handedit dashboard DIR                         the release/QA page (HTML)
+
+It lives beside the flows (not in ``handedit/``) because it builds Prefect runs; the
+domain library stays free of Prefect.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+STORE_NAME = "handedit.zarr"
+
+
+def _prefect_defaults() -> None:
+    """No telemetry, and quiet Prefect logs unless the user asked otherwise."""
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
+
+
+def store_path(out: str | Path) -> Path:
+    """``--out DIR`` names a run folder; the store is DIR/handedit.zarr (or DIR itself if it ends in .zarr)."""
+    out = Path(out)
+    return out if out.suffix == ".zarr" else out / STORE_NAME
+
+
+def _build_config(args: argparse.Namespace):
+    from flows.config import ClusterConfig, CurateConfig
+    from handedit.sources import VideoSpec
+    from handedit.sources.synthetic import make_clip_specs
+
+    if args.config:
+        from flows.curate import load_config
+
+        return load_config(args.config, args.cluster, str(store_path(args.out)) if args.out else None)
+    if not args.out:
+        raise SystemExit("handedit curate: --out DIR is required (or --config FILE with an 'out' field)")
+    clips: list = []
+    if args.demo:
+        clips += make_clip_specs(args.clips, seed=args.seed, n_frames=args.frames, width=args.width, height=args.height)
+    for video in args.video or []:
+        clips.append(VideoSpec(path=Path(video), keypoints_path=Path(args.keypoints) if args.keypoints else None,
+                               max_frames=args.max_frames))
+    if not clips:
+        raise SystemExit("handedit curate: give --demo, --video FILE or --config FILE")
+    cluster = ClusterConfig(address=args.address, n_workers=args.workers)
+    if args.cluster:
+        import yaml
+
+        spec = yaml.safe_load(Path(args.cluster).read_text()) or {}
+        cluster = ClusterConfig.model_validate(spec.get("cluster", spec))
+    return CurateConfig(out=store_path(args.out), clips=clips, embodiments=args.embodiment or ["allegro"],
+                        frames_per_chunk=args.frames_per_chunk, cluster=cluster)
+
+
+def cmd_curate(args: argparse.Namespace) -> int:
+    _prefect_defaults()
+    from pydantic import ValidationError
+
+    from flows.curate import run_curate
+
+    try:
+        config = _build_config(args)
+    except (ValidationError, ValueError) as exc:
+        print(f"handedit curate: invalid configuration:\n{exc}", file=sys.stderr)
+        return 2
+    print(f"curating {len(config.clips)} clip(s) x {len(config.embodiments)} embodiment(s) into {config.out}")
+    where = config.cluster.address or f"a local Dask cluster ({config.cluster.n_workers} worker processes)"
+    print(f"running on {where}; the Dask dashboard link follows when the cluster is up")
+    summary = run_curate(config, progress=not args.no_progress)
+    print_summary(summary)
+    return 0
+
+
+def print_summary(summary: dict) -> None:
+    print(f"\nstore:          {summary['store']}")
+    print(f"dask dashboard: {summary['dashboard'] or '(not available)'}")
+    print("\nchunks per stage (ran / skipped / failed):")
+    for stage, c in summary["stages"].items():
+        print(f"  {stage:<20} {c['ran']:>5} {c['skipped']:>8} {c['failed']:>7}")
+    print("\nframes per stage and status:")
+    for row in summary["status"]:
+        print(f"  {row['stage']:<20} {row['status']:<18} {row['frames']:>6}")
+    rejections = summary["rejections"]
+    print(f"\nrejections: {sum(rejections.values())}" + ("" if rejections else " (none)"))
+    for key, n in sorted(rejections.items()):
+        print(f"  {key:<40} {n:>6}")
+    for clip, err in summary.get("clip_errors", {}).items():
+        print(f"  clip {clip} not ingested: {err}")
+    if summary["errors"]:
+        print("\nstage errors (first 10):")
+        for e in summary["errors"][:10]:
+            print(f"  {e}")
+    run_dir = Path(summary["store"]).parent
+    print(f"\nledger: handedit ledger {run_dir}    QA page: handedit dashboard {run_dir}")
+
+
+def _open(args: argparse.Namespace):
+    from storage import StoreError, open_store
+
+    try:
+        return open_store(store_path(args.store))
+    except StoreError as exc:
+        raise SystemExit(f"handedit: {exc}") from None
+
+
+def cmd_ledger(args: argparse.Namespace) -> int:
+    from storage import read_ledger
+
+    ledger = read_ledger(_open(args))
+    if args.csv:
+        ledger.to_csv(sys.stdout, index=False)
+    elif ledger.empty:
+        print("no rejections")
+    else:
+        print(ledger.to_string(index=False, max_colwidth=80))
+    return 0
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    from storage import status_counts
+
+    root = _open(args)
+    print(status_counts(root).to_string(index=False))
+    runs = root.attrs.get("runs") or []
+    if runs:
+        print("\nlast run:", json.dumps(runs[-1]["stages"]))
+    return 0
+
+
+def cmd_dashboard(args: argparse.Namespace) -> int:
+    from dashboards.release import write_page
+
+    store = store_path(args.store)
+    out = Path(args.out) if args.out else store.parent / "qa.html"
+    print(f"wrote {write_page(_open(args), out, title=str(store.parent))}")
+    return 0
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="handedit", description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="command", required=True)
+
+    c = sub.add_parser("curate", help="run the curation flow (segment -> ... -> harmonize -> QC)")
+    c.add_argument("--demo", action="store_true", help="synthetic clips with ground truth (the embedded default)")
+    c.add_argument("--out", help="run folder (the store is OUT/handedit.zarr)")
+    c.add_argument("--config", help="YAML CurateConfig")
+    c.add_argument("--video", action="append", help="a video file (repeatable)")
+    c.add_argument("--keypoints", help="keypoints .npy/.npz for --video (MANO order, camera frame, metres)")
+    c.add_argument("--max-frames", type=int, default=None)
+    c.add_argument("--embodiment", action="append", help="embodiment id (repeatable; default allegro)")
+    c.add_argument("--clips", type=int, default=2, help="number of synthetic clips with --demo")
+    c.add_argument("--frames", type=int, default=48, help="frames per synthetic clip")
+    c.add_argument("--width", type=int, default=640)
+    c.add_argument("--height", type=int, default=480)
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--frames-per-chunk", type=int, default=16, help="frames per task and per Zarr chunk")
+    c.add_argument("--workers", type=int, default=2, help="local Dask worker processes")
+    c.add_argument("--address", help="Dask scheduler address to run on an existing cluster")
+    c.add_argument("--cluster", help="cluster spec YAML (deploy/cluster/*.yaml)")
+    c.add_argument("--no-progress", action="store_true")
+    c.set_defaults(func=cmd_curate)
+
+    lg = sub.add_parser("ledger", help="print the rejection ledger of a store")
+    lg.add_argument("store")
+    lg.add_argument("--csv", action="store_true")
+    lg.set_defaults(func=cmd_ledger)
+
+    st = sub.add_parser("status", help="frames per stage and status")
+    st.add_argument("store")
+    st.set_defaults(func=cmd_status)
+
+    db = sub.add_parser("dashboard", help="write the release/QA page (HTML) of a store")
+    db.add_argument("store")
+    db.add_argument("--out", help="default: STORE_DIR/qa.html")
+    db.set_defaults(func=cmd_dashboard)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

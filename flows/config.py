@@ -1,0 +1,96 @@
+"""Configuration of a curate run: clips, embodiments, per-stage parameters, cluster.
+
+One pydantic model, loadable from YAML (deployments) or built by the CLI. Each stage's
+parameters are that stage's own config class from ``handedit``; their values (and the
+class's VERSION) feed the provenance key, so editing one re-runs that stage and only
+what reads its output.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field
+
+from handedit.qc import QCConfig
+from handedit.render.stage import RenderConfig
+from handedit.retarget import RetargetConfig
+from handedit.sources import SourceSpec
+from handedit.vision.composite import CompositeConfig
+from handedit.vision.harmonize import HarmonizeConfig
+from handedit.vision.restore_background import RestoreConfig
+from handedit.vision.segment import SegmentConfig
+
+
+class IngestConfig(BaseModel):
+    VERSION: int = 1
+    model_config = ConfigDict(frozen=True)
+
+
+class ClusterConfig(BaseModel):
+    """Where tasks run: a local cluster of worker processes, an existing scheduler, or a
+    cluster class (e.g. ``dask_jobqueue.SLURMCluster``, ``dask_kubernetes.operator.KubeCluster``)
+    started for the run; see ``deploy/cluster/*.yaml``."""
+
+    address: str | None = Field(None, description="tcp://host:8786 of a running Dask scheduler")
+    cluster_class: str | None = Field(None, description="qualified name of a Dask cluster class")
+    cluster_kwargs: dict = Field(default_factory=dict, description="arguments of cluster_class")
+    adapt: dict | None = Field(None, description="e.g. {minimum: 0, maximum: 64} for adaptive clusters")
+    n_workers: int = Field(2, ge=1)
+    threads_per_worker: int = Field(1, ge=1, description="1: renderers and solvers are per process")
+    memory_limit: str = "6GiB"
+    dashboard_address: str = "127.0.0.1:0"
+
+    def task_runner(self):
+        from prefect_dask import DaskTaskRunner
+
+        if self.address:
+            return DaskTaskRunner(address=self.address)
+        if self.cluster_class:
+            return DaskTaskRunner(cluster_class=self.cluster_class, cluster_kwargs=self.cluster_kwargs,
+                                  adapt_kwargs=self.adapt)
+        return DaskTaskRunner(
+            cluster_class="distributed.LocalCluster",
+            cluster_kwargs={
+                "n_workers": self.n_workers,
+                "threads_per_worker": self.threads_per_worker,
+                "processes": True,
+                "host": "127.0.0.1",
+                "dashboard_address": self.dashboard_address,
+                "memory_limit": self.memory_limit,
+            },
+        )
+
+
+class CurateConfig(BaseModel):
+    out: Path = Field(description="the store, e.g. runs/demo/handedit.zarr")
+    clips: list[SourceSpec]
+    embodiments: list[str] = ["allegro"]
+    frames_per_chunk: int = Field(16, ge=1, description="frames per task and per chunk; fixed per store")
+    segment: SegmentConfig = SegmentConfig()
+    restore_background: RestoreConfig = RestoreConfig()
+    retarget: RetargetConfig = RetargetConfig()
+    render: RenderConfig = RenderConfig()
+    # The source's object mask shows the object where it was in front of the hand, so by
+    # default it occludes the robot there too (object depth, when known, refines this).
+    composite: CompositeConfig = CompositeConfig(occluder_in_front_without_depth=True)
+    harmonize: HarmonizeConfig = HarmonizeConfig()
+    qc: QCConfig = QCConfig()
+    cluster: ClusterConfig = ClusterConfig()
+    inject_faults: list[str] = Field(
+        default_factory=list,
+        description="drills/tests: 'stage:clip[:embodiment]' globs whose chunks raise InjectedFault",
+    )
+
+    def stage_config(self, stage: str) -> BaseModel:
+        return IngestConfig() if stage == "ingest" else getattr(self, stage)
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> "CurateConfig":
+        path = Path(path)
+        try:
+            data = yaml.safe_load(path.read_text())
+        except (OSError, yaml.YAMLError) as exc:
+            raise ValueError(f"cannot read curate config {path}: {exc}") from None
+        return cls.model_validate(data)

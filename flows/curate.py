@@ -1,0 +1,258 @@
+"""The curate flow: source clips -> harmonized robot composites, on a Dask cluster.
+
+    ingest -> segment -> restore_background (per scope: hand | hand_arm)
+           -> per embodiment: retarget -> render -> composite -> harmonize -> qc
+
+The flow driver plans clips x embodiments, creates every array (it is the only process
+that creates arrays or writes attributes), then schedules chunk tasks on the Dask task
+runner as their inputs complete, skipping chunks whose provenance is current, and
+records each chunk's provenance and rejections as results arrive.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import json
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+
+from prefect import flow, get_run_logger
+from prefect.context import get_run_context
+from tqdm import tqdm
+
+import handedit
+from flows.config import CurateConfig
+from flows.dag import ClipPlan, Node, NodeId, build_nodes
+from flows.scheduler import DagResult, Prepared, run_dag
+from handedit.embodiments import describe_embodiment
+from handedit.reasons import Reason
+from handedit.sources import SourceError, open_source
+from storage import Unit, create_or_open_store, create_unit, read_records, write_ledger_table, write_records
+from storage.ledger import read_ledger, status_counts
+from storage.provenance import ChunkRecord
+from storage.store import dumps, jsonable, now_iso, set_attrs
+from tasks import STAGE_TASKS
+from tasks.common import RETRIES, ChunkJob, failure_record, is_transient
+
+
+def code_version() -> str:
+    """Package version plus the git commit when running from a checkout."""
+    try:
+        sha = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=Path(__file__).parent, capture_output=True, text=True, timeout=5
+        ).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        sha = ""
+    return f"{handedit.__version__}+{sha}" if sha else handedit.__version__
+
+
+@dataclass
+class EmbodimentPlan:
+    id: str
+    scope: str
+    joint_names: list[str]
+    error: str | None = None
+    reason: int = int(Reason.OK)
+
+
+def plan_clips(config: CurateConfig) -> tuple[list[ClipPlan], dict[str, str]]:
+    """Open each source on the driver (metadata only); a bad source is a clip-level rejection."""
+    plans, errors = [], {}
+    for spec in config.clips:
+        label = getattr(spec, "clip_id", None) or str(getattr(spec, "path", spec))
+        try:
+            info = open_source(spec).info()
+        except SourceError as exc:
+            errors[Path(str(label)).stem if "/" in str(label) else str(label)] = str(exc)
+            continue
+        plans.append(
+            ClipPlan(
+                clip=info.clip_id,
+                n_frames=info.n_frames,
+                height=info.height,
+                width=info.width,
+                intrinsics=info.intrinsics.to_dict(),
+                source_json=dumps(spec.model_dump(mode="json")),
+                fingerprint=info.fingerprint,
+                has_object=info.has_object,
+                has_gt=bool(info.ground_truth),
+                info=jsonable({**vars(info), "intrinsics": info.intrinsics.to_dict()}),
+            )
+        )
+    ids = [p.clip for p in plans]
+    if len(set(ids)) != len(ids):
+        raise ValueError(f"clip ids must be unique, got {ids}")
+    return plans, errors
+
+
+def plan_embodiments(ids: list[str]) -> list[EmbodimentPlan]:
+    """Resolve each embodiment's track and joints; missing assets reject only its frames."""
+    plans = []
+    for emb_id in ids:
+        try:
+            scope, joints = describe_embodiment(emb_id)
+            plans.append(EmbodimentPlan(emb_id, scope, joints))
+        except Exception as exc:  # unknown id, missing assets, broken URDF: recorded, not fatal
+            reason = int(getattr(exc, "reason", Reason.ASSETS_MISSING))
+            plans.append(EmbodimentPlan(emb_id, getattr(exc, "scope", "hand"), [], f"{type(exc).__name__}: {exc}", reason))
+    return plans
+
+
+def _create_units(root, config: CurateConfig, clip: ClipPlan, embs: list[EmbodimentPlan]) -> None:
+    f, sizes = config.frames_per_chunk, {"H": clip.height, "W": clip.width}
+    create_unit(root, Unit("ingest", clip.clip), clip.n_frames, sizes, f, clip.has_object, clip.has_gt,
+                attrs={"info": clip.info})
+    create_unit(root, Unit("segment", clip.clip), clip.n_frames, sizes, f)
+    for scope in sorted({e.scope for e in embs}):
+        create_unit(root, Unit("restore_background", clip.clip, scope=scope), clip.n_frames, sizes, f)
+    for emb in embs:
+        for stage in ("retarget", "render", "composite", "harmonize", "qc"):
+            extra = {"joint_names": emb.joint_names} if stage == "retarget" else None
+            create_unit(root, Unit(stage, clip.clip, embodiment=emb.id), clip.n_frames,
+                        {**sizes, "dof": len(emb.joint_names)}, f, attrs=extra)
+
+
+def stage_version_params(config: CurateConfig, stage: str) -> tuple[int, dict]:
+    """A stage's code version (its config class's VERSION) and parameters."""
+    cfg = config.stage_config(stage)
+    return int(getattr(type(cfg), "VERSION", 1)), cfg.model_dump(mode="json")
+
+
+def _matches_fault(config: CurateConfig, unit: Unit) -> bool:
+    names = [f"{unit.stage}:{unit.clip}", f"{unit.stage}:{unit.clip}:{unit.embodiment or unit.scope or ''}"]
+    return any(fnmatch.fnmatchcase(n, pat) for pat in config.inject_faults for n in names)
+
+
+def _dashboard_link() -> str | None:
+    try:
+        return get_run_context().task_runner.client.dashboard_link
+    except Exception:
+        return None
+
+
+@flow(name="curate", log_prints=True)
+def curate(config: CurateConfig, progress: bool = False) -> dict:
+    """Curate ``config.clips`` x ``config.embodiments`` into the store at ``config.out``."""
+    logger = get_run_logger()
+    version, started = code_version(), now_iso()
+    root = create_or_open_store(config.out, config.frames_per_chunk, version)
+    clips, clip_errors = plan_clips(config)
+    embs = plan_embodiments(config.embodiments)
+    registry = dict(root.attrs.get("clips") or {})
+    for c in clips:
+        registry[c.clip] = {"source": json.loads(c.source_json), "n_frames": c.n_frames, "fingerprint": c.fingerprint}
+    for clip_id, err in clip_errors.items():
+        registry[clip_id] = {"error": err, "reason": int(Reason.SOURCE_UNREADABLE)}
+        logger.error("clip %s rejected: %s", clip_id, err)
+    set_attrs(root, "", {"clips": registry, "embodiments": {e.id: {"scope": e.scope, "dof": len(e.joint_names), "error": e.error} for e in embs}})
+    for e in embs:
+        if e.error:
+            logger.error("embodiment %s rejected: %s", e.id, e.error)
+    for c in clips:
+        _create_units(root, config, c, embs)
+
+    scopes = {e.id: e.scope for e in embs}
+    window = int(getattr(config.restore_background, "window", 0))
+    nodes = [n for c in clips for n in build_nodes(c, scopes, config.frames_per_chunk, window)]
+    units = sorted({n.unit for n in nodes})
+    for unit in units:
+        version_, params = stage_version_params(config, unit.stage)
+        set_attrs(root, unit.path, {"stage": unit.stage, "version": version_, "params": params})
+    stored = {u: read_records(root, u) for u in units}
+    failed_embs = {e.id: e for e in embs if e.error}
+    jobs: dict[NodeId, ChunkJob] = {}
+
+    def job_for(prep: Prepared) -> ChunkJob:
+        n = prep.node
+        job = ChunkJob(str(config.out), n.unit, n.chunk, n.start, n.stop, prep.key, prep.version, prep.params,
+                       prep.inputs, version, n.context, fault=_matches_fault(config, n.unit))
+        jobs[n.id] = job
+        return job
+
+    def submit(prep: Prepared):
+        return STAGE_TASKS[prep.node.unit.stage].submit(job_for(prep))
+
+    def complete(prep: Prepared, handle) -> tuple[dict, bool]:
+        result = handle.result(raise_on_failure=False)
+        if isinstance(result, dict):
+            return result, False
+        exc = result if isinstance(result, BaseException) else RuntimeError(f"task ended without a result: {result!r}")
+        reason = Reason(int(getattr(exc, "reason", Reason.STAGE_ERROR)))
+        attempts = RETRIES + 1 if is_transient(exc) else 1
+        logger.warning("%s chunk %d failed: %s", prep.node.unit.label, prep.node.chunk, exc)
+        return failure_record(jobs[prep.node.id], root, reason, f"{type(exc).__name__}: {exc}", attempts), True
+
+    def prefail(prep: Prepared) -> dict | None:
+        emb = failed_embs.get(prep.node.unit.embodiment or "")
+        if emb is None or prep.node.unit.stage != "retarget":
+            return None
+        return failure_record(job_for(prep), root, Reason(emb.reason), emb.error or "", 0)
+
+    def on_record(node: Node, record: dict) -> None:
+        write_records(root, node.unit, [ChunkRecord.from_json(record)])
+
+    bar = tqdm(total=len(nodes), desc="curate", unit="chunk", disable=not progress)
+    link = _dashboard_link()
+    if link:
+        logger.info("Dask dashboard: %s", link)
+    try:
+        result = run_dag(nodes, lambda stage: stage_version_params(config, stage), lambda nid: _stored(stored, nid), submit, complete, prefail, on_record, bar.update)
+    finally:
+        bar.close()
+    return _finish(root, config, result, started, link, clip_errors)
+
+
+def _stored(stored: dict, node_id: NodeId) -> dict | None:
+    unit, chunk = node_id
+    rec = stored.get(unit, {}).get(chunk)
+    return rec.to_json() if rec is not None else None
+
+
+def _finish(root, config: CurateConfig, result: DagResult, started: str, link: str | None, clip_errors: dict) -> dict:
+    n_rejections = write_ledger_table(root)
+    counts = {stage: vars(c) for stage, c in result.counts.items()}
+    run = {"started": started, "finished": now_iso(), "dashboard": link, "stages": counts, "errors": result.errors[:50],
+           "rejections": n_rejections, "clip_errors": clip_errors}
+    set_attrs(root, "", {"runs": [*(root.attrs.get("runs") or []), run]})
+    status = status_counts(root)
+    ledger = read_ledger(root)
+    by_reason = ledger.groupby(["stage", "reason_name"]).size().to_dict() if len(ledger) else {}
+    return {
+        "store": str(config.out),
+        "dashboard": link,
+        "stages": counts,
+        "status": status.to_dict(orient="records"),
+        "rejections": {f"{s}:{r}": int(n) for (s, r), n in by_reason.items()},
+        "errors": result.errors,
+        "clip_errors": clip_errors,
+    }
+
+
+def run_curate(config: CurateConfig, progress: bool = False) -> dict:
+    """Run the flow on the configured Dask cluster (LocalCluster unless an address is set)."""
+    return curate.with_options(task_runner=config.cluster.task_runner())(config, progress=progress)
+
+
+__all__ = ["curate", "run_curate", "CurateConfig", "code_version"]
+
+
+def load_config(config_path: str | Path, cluster_path: str | Path | None = None, out: str | None = None) -> CurateConfig:
+    """A YAML CurateConfig, optionally with the ``cluster:`` section of a deploy/cluster spec."""
+    import yaml
+
+    config = CurateConfig.from_yaml(config_path)
+    update: dict = {}
+    if cluster_path:
+        spec = yaml.safe_load(Path(cluster_path).read_text()) or {}
+        update["cluster"] = type(config.cluster).model_validate(spec.get("cluster", spec))
+    if out:
+        update["out"] = Path(out)
+    return config.model_copy(update=update) if update else config
+
+
+@flow(name="curate-from-config", log_prints=True)
+def curate_from_config(config_path: str, cluster_path: str | None = None, out: str | None = None) -> dict:
+    """Deployment entry point (deploy/prefect.yaml): runs ``curate`` as a subflow on the
+    Dask cluster the config names, so one deployment serves local, Slurm or Kubernetes."""
+    return run_curate(load_config(config_path, cluster_path, out))

@@ -1,0 +1,97 @@
+"""The curate DAG at chunk granularity: which chunk of which stage reads what.
+
+Stages: ingest -> segment -> restore_background (per scope) and, per embodiment,
+retarget -> render -> composite -> harmonize -> qc. A node is one (unit, chunk); its
+dependencies name the exact arrays it reads, so its provenance key fingerprints exactly
+its inputs. restore_background reads a window of neighbouring chunks.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from storage.layout import SCOPE_MASK, Unit, chunk_ranges
+from storage.store import dumps
+
+NodeId = tuple[Unit, int]
+
+
+@dataclass
+class Dep:
+    unit: Unit
+    chunk: int
+    arrays: tuple[str, ...]
+
+
+@dataclass
+class Node:
+    unit: Unit
+    chunk: int
+    start: int
+    stop: int
+    deps: list[Dep] = field(default_factory=list)
+    context: dict = field(default_factory=dict)
+    fixed_inputs: dict[str, str] = field(default_factory=dict)  # inputs that are not store arrays
+
+    @property
+    def id(self) -> NodeId:
+        return (self.unit, self.chunk)
+
+
+@dataclass(frozen=True)
+class ClipPlan:
+    clip: str
+    n_frames: int
+    height: int
+    width: int
+    intrinsics: dict
+    source_json: str
+    fingerprint: str
+    has_object: bool
+    has_gt: bool
+    info: dict = field(default_factory=dict, compare=False)  # the source's ClipInfo, JSON-safe
+
+
+def build_nodes(
+    clip: ClipPlan,
+    embodiments: dict[str, str],
+    frames_per_chunk: int,
+    restore_window: int,
+) -> list[Node]:
+    """All nodes for one clip; ``embodiments`` maps embodiment id -> scope (its track)."""
+    c = clip.clip
+    ranges = chunk_ranges(clip.n_frames, frames_per_chunk)
+    base_ctx = {"intrinsics": clip.intrinsics, "has_object": clip.has_object}
+    camera = {"intrinsics": dumps(clip.intrinsics)}
+    ingest, segment = Unit("ingest", c), Unit("segment", c)
+    nodes: list[Node] = []
+    for k, (s, e) in enumerate(ranges):
+        ingest_ctx = {"source": clip.source_json, "has_object": clip.has_object, "has_gt": clip.has_gt}
+        nodes.append(Node(ingest, k, s, e, [], ingest_ctx, {"source": clip.fingerprint}))
+        seg_deps = [Dep(ingest, k, ("frames", "keypoints", "keypoints_valid", "status"))]
+        nodes.append(Node(segment, k, s, e, seg_deps, base_ctx, camera))
+    for scope in sorted(set(embodiments.values())):
+        restore = Unit("restore_background", c, scope=scope)
+        for k, (s, e) in enumerate(ranges):
+            lo, hi = max(0, s - restore_window), min(clip.n_frames, e + restore_window)
+            window = [j for j, (a, b) in enumerate(ranges) if a < hi and b > lo]
+            deps = [Dep(ingest, j, ("frames",)) for j in window]
+            deps += [Dep(segment, j, (SCOPE_MASK[scope], "status")) for j in window]
+            nodes.append(Node(restore, k, s, e, deps, {"window": [lo, hi]}))
+    for emb, scope in embodiments.items():
+        restore = Unit("restore_background", c, scope=scope)
+        ret, ren, comp, harm, qc = (Unit(st, c, embodiment=emb) for st in ("retarget", "render", "composite", "harmonize", "qc"))
+        for k, (s, e) in enumerate(ranges):
+            comp_deps = [Dep(restore, k, ("background", "status")), Dep(ren, k, ("rgba", "depth", "status"))]
+            if clip.has_object:
+                comp_deps.append(Dep(ingest, k, ("object_mask",)))
+            upstream = [ingest, segment, restore, ret, ren, comp, harm]
+            nodes += [
+                Node(ret, k, s, e, [Dep(ingest, k, ("keypoints", "keypoints_valid", "status"))], base_ctx),
+                Node(ren, k, s, e, [Dep(ret, k, ("qpos", "root_pose", "status"))], base_ctx, camera),
+                Node(comp, k, s, e, comp_deps, {**base_ctx, "scope": scope}),
+                Node(harm, k, s, e, [Dep(comp, k, ("image", "robot_mask", "status"))], base_ctx),
+                Node(qc, k, s, e, [Dep(u, k, ("status",)) for u in upstream],
+                     {"upstream": [{"stage": u.stage, "clip": u.clip, "scope": u.scope, "embodiment": u.embodiment} for u in upstream]}),
+            ]
+    return nodes

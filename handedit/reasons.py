@@ -1,0 +1,80 @@
+"""Per-frame status codes: the one reason table for every stage.
+
+Every stage writes a ``status`` array (int16, one value per frame). ``PENDING`` means
+the stage has not produced this frame, ``OK`` that it has, ``UPSTREAM`` that an earlier
+stage rejected the frame (the ledger names that earlier cause only once), and every
+code >= 100 is a rejection whose cause the ledger records with a detail string.
+
+The hundreds group codes by stage family, following the paper's quality-control table.
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum
+
+import numpy as np
+
+
+class Reason(IntEnum):
+    PENDING = 0
+    OK = 1
+    UPSTREAM = 2  # an earlier stage rejected this frame
+
+    # 1xx: input / source
+    NO_KEYPOINTS = 101  # the source has no (valid) hand keypoints for this frame
+    CORRUPT_FRAME = 102  # frame could not be decoded
+    BLANK_FRAME = 103  # frame is constant / all black
+    SOURCE_UNREADABLE = 104  # the clip's source could not be opened at all (frame -1 in the ledger)
+    # 2xx: segmentation
+    EMPTY_MASK = 201
+    LOW_CONFIDENCE = 202  # segmenter confidence below threshold (0.75 for a model)
+    # 3xx: background restoration
+    RESIDUE = 301  # skin-coloured pixels left in the restored region
+    GHOSTING = 302
+    # 4xx: hand retargeting
+    FINGERTIP_ERROR = 401  # fingertip error > 50 mm
+    WRIST_ERROR = 402  # wrist error > 50 mm
+    CONTACT_DISTANCE = 403  # contact distance > 20 mm
+    CONTACT_LOSS = 404
+    PENETRATION = 405
+    JOINT_LIMIT = 406
+    SOLVER_FAILED = 407
+    # 5xx: IK and virtual base
+    IK_INFEASIBLE = 501
+    OUT_OF_REACH = 502
+    COLLISION = 503
+    DISCONTINUITY = 504
+    NO_VALID_BASE = 505
+    REVIEW_DROPPED = 506
+    # 6xx: render / composite / harmonize
+    EMPTY_RENDER = 601  # the robot is not visible in the image
+    # 9xx: infrastructure
+    STAGE_ERROR = 901  # the stage raised after its retries; detail holds the error
+    ASSETS_MISSING = 902  # embodiment assets could not be resolved
+
+    @property
+    def is_rejection(self) -> bool:
+        return self.value >= 100
+
+
+STATUS_DTYPE = np.int16
+
+
+def describe() -> list[dict]:
+    """The reason table as rows (code, name), for docs, dashboards and the CLI."""
+    return [{"code": int(r), "name": r.name} for r in Reason]
+
+
+def gate(*upstream: np.ndarray) -> np.ndarray:
+    """Frames that every upstream stage produced OK (bool mask)."""
+    ok = np.ones_like(np.asarray(upstream[0]), dtype=bool)
+    for s in upstream:
+        ok &= np.asarray(s) == Reason.OK
+    return ok
+
+
+def combine(own: np.ndarray, ready: np.ndarray) -> np.ndarray:
+    """A stage's status: its own code where its inputs were ready, UPSTREAM elsewhere."""
+    out = np.asarray(own, dtype=STATUS_DTYPE).copy()
+    out[~np.asarray(ready, dtype=bool)] = Reason.UPSTREAM
+    return out

@@ -1,0 +1,69 @@
+"""Per-process, per-thread renderer cache and the embodiment-level convenience entry point.
+
+Building a renderer (mesh loading, GL upload) costs seconds, so a Dask worker builds each
+one once; the thread id is part of the key because an EGL context is bound to its thread.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from handedit.camera import Intrinsics
+from handedit.render.renderer import RenderResult, RobotRenderer
+
+_CACHE: dict[tuple, RobotRenderer] = {}
+_LOCK = threading.Lock()
+
+
+def get_renderer(
+    urdf_path: Path,
+    width: int,
+    height: int,
+    materials_key: tuple | None = None,
+    decimate: float | None = None,
+) -> RobotRenderer:
+    """Cached RobotRenderer. ``materials_key`` is a hashable materials mapping: a tuple of
+    (link-name regex, (r, g, b, a)) pairs, as ``RobotRenderer(materials=dict(materials_key))``."""
+    urdf_path = Path(urdf_path).resolve()
+    materials_key = tuple((str(k), tuple(float(c) for c in v)) for k, v in materials_key) if materials_key else None
+    key = (os.getpid(), threading.get_ident(), str(urdf_path), int(width), int(height), materials_key, decimate)
+    with _LOCK:
+        renderer = _CACHE.get(key)
+    if renderer is None:
+        # Built outside the lock: other threads keep rendering while this one loads meshes.
+        renderer = RobotRenderer(urdf_path, width, height, dict(materials_key) if materials_key else None, decimate)
+        with _LOCK:
+            renderer = _CACHE.setdefault(key, renderer)
+    return renderer
+
+
+def clear_renderers() -> None:
+    """Free this thread's cached renderers (GL contexts must be deleted on their own thread)."""
+    me = (os.getpid(), threading.get_ident())
+    with _LOCK:
+        keys = [k for k in _CACHE if k[:2] == me]
+        renderers = [_CACHE.pop(k) for k in keys]
+    for r in renderers:
+        r.close()
+
+
+def render_embodiment(
+    embodiment_id: str,
+    qpos: np.ndarray,
+    root_pose: np.ndarray,
+    intrinsics: Intrinsics,
+    decimate: float | None = None,
+) -> RenderResult:
+    """Render a registered embodiment: URDF and materials come from ``handedit.embodiments``."""
+    from handedit import embodiments
+
+    emb = embodiments.get_embodiment(embodiment_id)
+    urdf_path = embodiments.resolve_urdf(emb)
+    materials = getattr(emb, "materials", None) or None
+    key = tuple((k, tuple(v)) for k, v in dict(materials).items()) if materials else None
+    renderer = get_renderer(Path(urdf_path), intrinsics.width, intrinsics.height, key, decimate)
+    return renderer.render(qpos, root_pose, intrinsics)

@@ -1,0 +1,215 @@
+"""Visual model of a URDF for rendering: link-rigid triangle soups grouped by material.
+
+The URDF is parsed once with yourdfpy (its ``actuated_joint_names`` define the project's qpos
+order and it derives mimic joints). Every visual mesh is baked into the frame of the link that
+carries it and merged per (link, material), so a frame costs one pose update per link and a
+handful of draw calls instead of one per mesh file.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import trimesh
+import yourdfpy
+
+Rgba = tuple[float, float, float, float]
+
+NEUTRAL_GREY: Rgba = (0.6, 0.6, 0.6, 1.0)
+"""Display (sRGB) colour for meshes that carry no colour at all (e.g. bare STL)."""
+
+
+def srgb_to_linear(rgba: np.ndarray | tuple) -> Rgba:
+    """Display colour -> linear PBR base colour. URDF <color>, MTL Kd, vertex colours and our
+    overrides are authored as display colours; glTF baseColorFactor is already linear, and
+    pyrender's shader gamma-encodes its output, so only the former need converting."""
+    c = np.asarray(rgba, float)
+    rgb = np.where(c[:3] <= 0.04045, c[:3] / 12.92, ((c[:3] + 0.055) / 1.055) ** 2.4)
+    return tuple(float(x) for x in (*rgb, c[3]))
+
+
+@dataclass(frozen=True)
+class Material:
+    """The uniform PBR parameters we keep per mesh (no asset in use has textures)."""
+
+    rgba: Rgba
+    metallic: float
+    roughness: float
+    double_sided: bool = False
+
+
+@dataclass
+class LinkPart:
+    """Triangles of one link sharing one material, expressed in the link frame."""
+
+    link: str
+    material: Material
+    vertices: np.ndarray  # (v,3) float32
+    normals: np.ndarray  # (v,3) float32
+    faces: np.ndarray  # (f,3) int32
+
+
+@dataclass
+class RobotModel:
+    urdf: yourdfpy.URDF
+    parts: list[LinkPart] = field(default_factory=list)
+
+    @property
+    def links(self) -> list[str]:
+        """Links with visual geometry, in a stable order."""
+        return sorted({p.link for p in self.parts})
+
+    @property
+    def n_faces(self) -> int:
+        return int(sum(len(p.faces) for p in self.parts))
+
+
+def load_urdf(urdf_path: Path) -> yourdfpy.URDF:
+    """Load with visual meshes; a mesh that does not resolve is an error, not a silent hole."""
+    urdf_path = Path(urdf_path)
+    if not urdf_path.is_file():
+        raise FileNotFoundError(f"URDF not found: {urdf_path}")
+    urdf = yourdfpy.URDF.load(str(urdf_path), build_scene_graph=True, load_meshes=True)
+    missing = []
+    for link in urdf.robot.links:
+        for vis in link.visuals:
+            mesh = vis.geometry.mesh if vis.geometry is not None else None
+            if mesh is None:
+                continue
+            resolved = urdf._filename_handler(fname=mesh.filename)
+            if not Path(resolved).is_file():
+                missing.append(f"{resolved} (link '{link.name}', URDF filename '{mesh.filename}')")
+    if missing:
+        raise FileNotFoundError(f"{urdf_path}: visual mesh file(s) missing: " + "; ".join(missing))
+    return urdf
+
+
+def _source_material(mesh: trimesh.Trimesh) -> Material | None:
+    """Uniform material of a loaded mesh, or None when the file carries no colour."""
+    vis = mesh.visual
+    if vis is None or not vis.defined:
+        return None
+    if vis.kind == "texture":
+        mat = vis.material
+        if isinstance(mat, trimesh.visual.material.PBRMaterial):
+            base = mat.baseColorFactor
+            rgba = (np.asarray(base, float) / 255.0) if base is not None else np.ones(4)
+            if mat.baseColorTexture is not None and vis.uv is not None:
+                # Textures are averaged: the robots we render are uniformly coloured parts.
+                tex = np.asarray(mat.baseColorTexture.convert("RGBA"), float) / 255.0
+                rgba = rgba * tex.reshape(-1, 4).mean(axis=0)
+            metallic = 1.0 if mat.metallicFactor is None else float(mat.metallicFactor)
+            roughness = 1.0 if mat.roughnessFactor is None else float(mat.roughnessFactor)
+            return Material(tuple(float(c) for c in rgba), metallic, roughness, bool(mat.doubleSided))
+        if isinstance(mat, trimesh.visual.material.SimpleMaterial):
+            rgba = np.asarray(mat.diffuse, float) / 255.0
+            if mat.image is not None:
+                rgba = rgba * (np.asarray(mat.image.convert("RGBA"), float) / 255.0).reshape(-1, 4).mean(axis=0)
+            return Material(srgb_to_linear(rgba), 0.1, 0.6)
+        return None
+    if vis.kind in ("vertex", "face"):
+        cols = vis.vertex_colors if vis.kind == "vertex" else vis.face_colors
+        rgba = np.asarray(cols, float).mean(axis=0) / 255.0
+        return Material(srgb_to_linear(rgba), 0.1, 0.6)
+    return None
+
+
+def _final_material(link: str, src: Material | None, overrides: list[tuple[re.Pattern, Rgba]]) -> Material:
+    default = Material(srgb_to_linear(NEUTRAL_GREY), 0.1, 0.6)
+    for pattern, rgba in overrides:
+        if pattern.fullmatch(link):
+            base = src or default
+            return Material(srgb_to_linear(rgba), base.metallic, base.roughness, base.double_sided)
+    return src or default
+
+
+def _compile_overrides(materials: dict[str, Rgba] | None) -> list[tuple[re.Pattern, Rgba]]:
+    out = []
+    for pattern, rgba in (materials or {}).items():
+        rgba = tuple(float(c) for c in rgba)
+        if len(rgba) != 4 or not all(0.0 <= c <= 1.0 for c in rgba):
+            raise ValueError(f"material for {pattern!r} must be RGBA in [0, 1], got {rgba}")
+        out.append((re.compile(pattern), rgba))
+    return out
+
+
+def decimate_mesh(mesh: trimesh.Trimesh, fraction: float, min_faces: int = 64) -> trimesh.Trimesh:
+    """Quadric decimation to ``fraction`` of the faces; small meshes are left alone (they are cheap
+    and decimating them damages silhouettes most)."""
+    if not 0.0 < fraction <= 1.0:
+        raise ValueError(f"decimate must be a fraction of faces in (0, 1], got {fraction}")
+    if fraction >= 1.0 or len(mesh.faces) <= min_faces:
+        return mesh
+    try:
+        import fast_simplification  # noqa: F401  (trimesh's backend; imported to fail early and clearly)
+    except ImportError as exc:
+        raise ImportError(
+            "decimate= needs trimesh.Trimesh.simplify_quadric_decimation, whose backend "
+            "'fast-simplification' is not installed (pip install fast-simplification); "
+            "use decimate=None to render the full meshes"
+        ) from exc
+    target = max(min_faces, int(round(len(mesh.faces) * fraction)))
+    return mesh.simplify_quadric_decimation(face_count=target)
+
+
+def build_model(
+    urdf_path: Path,
+    materials: dict[str, Rgba] | None = None,
+    decimate: float | None = None,
+) -> RobotModel:
+    """Load the URDF and bake its visual meshes into per-(link, material) parts."""
+    urdf = load_urdf(urdf_path)
+    overrides = _compile_overrides(materials)
+    scene = urdf.scene
+    graph = scene.graph
+    groups: dict[tuple[str, Material], list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
+    for node in graph.nodes_geometry:
+        _, geom_name = graph[node]
+        mesh = scene.geometry[geom_name]
+        if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+            continue
+        link = graph.transforms.parents[node]
+        link_from_mesh, _ = graph.get(frame_to=node, frame_from=link)
+        material = _final_material(link, _source_material(mesh), overrides)
+        if decimate is not None:
+            mesh = decimate_mesh(mesh, decimate)
+        R, t = link_from_mesh[:3, :3], link_from_mesh[:3, 3]
+        verts = mesh.vertices @ R.T + t
+        normals = mesh.vertex_normals @ np.linalg.inv(R)  # inverse-transpose: right under scaling
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+        # A mirroring transform flips triangle winding; keep faces outward for back-face culling.
+        faces = mesh.faces if np.linalg.det(R) > 0 else mesh.faces[:, ::-1]
+        groups.setdefault((link, material), []).append((verts, normals, faces))
+    parts = []
+    for (link, material), items in groups.items():
+        offsets = np.cumsum([0] + [len(v) for v, _, _ in items[:-1]])
+        parts.append(
+            LinkPart(
+                link=link,
+                material=material,
+                vertices=np.concatenate([v for v, _, _ in items]).astype(np.float32),
+                normals=np.concatenate([n for _, n, _ in items]).astype(np.float32),
+                faces=np.concatenate([f + o for (_, _, f), o in zip(items, offsets)]).astype(np.int32),
+            )
+        )
+    if not parts:
+        raise ValueError(f"{urdf_path}: no visual mesh geometry to render")
+    return RobotModel(urdf=urdf, parts=parts)
+
+
+def joint_limits(urdf: yourdfpy.URDF) -> tuple[np.ndarray, np.ndarray]:
+    """(lower, upper) per actuated joint; continuous or unlimited joints get [-pi, pi]."""
+    lo, hi = [], []
+    for name in urdf.actuated_joint_names:
+        j = urdf.joint_map[name]
+        lim = j.limit
+        if j.type == "continuous" or lim is None or lim.lower is None or lim.upper is None:
+            lo.append(-np.pi)
+            hi.append(np.pi)
+        else:
+            lo.append(float(lim.lower))
+            hi.append(float(lim.upper))
+    return np.array(lo), np.array(hi)

@@ -1,0 +1,178 @@
+"""Offscreen rendering of a URDF embodiment seen by an OpenCV pinhole camera.
+
+One pyrender scene and one OffscreenRenderer per RobotRenderer: meshes are uploaded once and
+every frame only moves link nodes. EGL contexts are bound to the thread that created them, so
+a RobotRenderer refuses calls from other threads (use ``get_renderer`` per thread).
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")  # before pyrender/OpenGL import: headless
+
+import threading  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import pyrender  # noqa: E402
+
+from handedit.camera import CV_TO_GL, Intrinsics  # noqa: E402
+from handedit.render.gl import make_offscreen  # noqa: E402
+from handedit.render.model import Rgba, RobotModel, build_model  # noqa: E402
+
+Z_NEAR, Z_FAR = 0.01, 20.0  # metres; 24-bit depth keeps ~µm precision at 0.5 m with these
+AMBIENT = 0.35
+# (direction the light travels in the OpenCV camera frame, intensity): a key light from the
+# upper left behind the camera and a weaker fill from the right, like a head-mounted view.
+LIGHTS_CV: tuple[tuple[tuple[float, float, float], float], ...] = (
+    ((0.45, 0.65, 1.0), 3.0),
+    ((-0.8, -0.1, 0.6), 1.4),
+)
+
+
+@dataclass
+class RenderResult:
+    rgba: np.ndarray  # (n,H,W,4) uint8; alpha 255 on robot pixels, RGB black where alpha is 0
+    depth: np.ndarray  # (n,H,W) float32 metres along the camera z axis; 0 where no robot
+
+    @property
+    def mask(self) -> np.ndarray:
+        """(n,H,W) bool robot silhouette."""
+        return self.rgba[..., 3] > 0
+
+
+def _light_pose_gl(direction_cv: np.ndarray) -> np.ndarray:
+    """Pose (in the GL camera frame) of a pyrender directional light shining along ``direction_cv``."""
+    d = CV_TO_GL[:3, :3] @ (np.asarray(direction_cv, float) / np.linalg.norm(direction_cv))
+    z = -d  # pyrender lights shine along their -z axis
+    x = np.cross([0.0, 1.0, 0.0], z)
+    if np.linalg.norm(x) < 1e-6:
+        x = np.array([1.0, 0.0, 0.0])
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2] = x, np.cross(z, x), z
+    return T
+
+
+class RobotRenderer:
+    """Renders one URDF at joint configurations; heavy state (meshes, GL context) built once.
+
+    ``materials``: link-name regex (``re.fullmatch``, first match wins) -> display (sRGB) RGBA in
+    [0, 1], overriding the mesh colours of matching links (the embodiment roster's convention).
+    Links with no match keep their URDF/mesh colours; meshes with none render neutral grey.
+    ``decimate``: keep about this fraction of each mesh's faces (quadric decimation).
+    """
+
+    def __init__(
+        self,
+        urdf_path: Path,
+        width: int,
+        height: int,
+        materials: dict[str, Rgba] | None = None,
+        decimate: float | None = None,
+    ) -> None:
+        self.urdf_path = Path(urdf_path)
+        self.width, self.height = int(width), int(height)
+        self.model: RobotModel = build_model(self.urdf_path, materials=materials, decimate=decimate)
+        self.urdf = self.model.urdf
+        self.joint_names: list[str] = list(self.urdf.actuated_joint_names)
+        self._base = self.urdf.base_link
+        self._thread = threading.get_ident()
+
+        # The camera sits at the scene origin; the scene frame *is* the GL camera frame, so lights
+        # placed in it stay fixed relative to the camera and robot poses are CV_TO_GL @ root_pose.
+        self.scene = pyrender.Scene(bg_color=(0.0, 0.0, 0.0, 0.0), ambient_light=(AMBIENT,) * 3)
+        self._link_nodes: dict[str, pyrender.Node] = {}
+        for link in self.model.links:
+            prims = [
+                pyrender.Primitive(
+                    positions=p.vertices,
+                    normals=p.normals,
+                    indices=p.faces,
+                    material=pyrender.MetallicRoughnessMaterial(
+                        baseColorFactor=p.material.rgba,
+                        metallicFactor=p.material.metallic,
+                        roughnessFactor=p.material.roughness,
+                        doubleSided=p.material.double_sided,
+                        alphaMode="OPAQUE",
+                    ),
+                )
+                for p in self.model.parts
+                if p.link == link
+            ]
+            self._link_nodes[link] = self.scene.add(pyrender.Mesh(prims), name=link)
+        for direction, intensity in LIGHTS_CV:
+            light = pyrender.DirectionalLight(color=np.ones(3), intensity=intensity)
+            self.scene.add(light, pose=_light_pose_gl(np.array(direction)))
+        self._camera = pyrender.IntrinsicsCamera(
+            fx=1.0, fy=1.0, cx=self.width / 2, cy=self.height / 2, znear=Z_NEAR, zfar=Z_FAR
+        )
+        self.scene.add(self._camera, pose=np.eye(4))
+        self._gl = make_offscreen(self.width, self.height)
+
+    @property
+    def n_faces(self) -> int:
+        return self.model.n_faces
+
+    def link_transforms(self, q: np.ndarray) -> dict[str, np.ndarray]:
+        """root_link_from_link (4x4) for every link with visual geometry at configuration ``q``."""
+        self.urdf.update_cfg(np.asarray(q, dtype=float))
+        return {link: self.urdf.get_transform(link, self._base) for link in self._link_nodes}
+
+    def points(self, q: np.ndarray, per_part: int = 400) -> np.ndarray:
+        """A subsample of visual vertices in the root-link frame at ``q`` (for framing and checks)."""
+        Ts = self.link_transforms(q)
+        out = []
+        for p in self.model.parts:
+            v = p.vertices[:: max(1, len(p.vertices) // per_part)].astype(float)
+            T = Ts[p.link]
+            out.append(v @ T[:3, :3].T + T[:3, 3])
+        return np.concatenate(out)
+
+    def render(self, qpos: np.ndarray, root_pose: np.ndarray, intrinsics: Intrinsics) -> RenderResult:
+        """qpos (n,dof) in ``joint_names`` order; root_pose (n,4,4) camera_from_root_link (OpenCV)."""
+        if threading.get_ident() != self._thread:
+            raise RuntimeError(
+                "RobotRenderer used from a thread other than the one that created it; EGL contexts "
+                "are thread-bound: get a renderer per thread with handedit.render.get_renderer"
+            )
+        qpos = np.atleast_2d(np.asarray(qpos, dtype=float))
+        root_pose = np.asarray(root_pose, dtype=float).reshape(-1, 4, 4)
+        n = len(qpos)
+        if qpos.shape[1] != len(self.joint_names):
+            raise ValueError(f"qpos has {qpos.shape[1]} columns, {self.urdf_path.name} has {len(self.joint_names)} dof")
+        if len(root_pose) != n:
+            raise ValueError(f"root_pose has {len(root_pose)} frames, qpos has {n}")
+        if not (np.isfinite(qpos).all() and np.isfinite(root_pose).all()):
+            raise ValueError("qpos and root_pose must be finite")
+        R = root_pose[:, :3, :3]
+        if not np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-4) or (np.linalg.det(R) <= 0).any():
+            # the shader transforms normals with the pose's rotation, which needs a rigid pose
+            raise ValueError("root_pose rotations must be proper rotations (rigid camera_from_root)")
+        if self._gl is None:
+            raise RuntimeError("renderer was closed")
+        if (intrinsics.width, intrinsics.height) != (self.width, self.height):
+            raise ValueError(
+                f"intrinsics are for {intrinsics.width}x{intrinsics.height}, renderer is {self.width}x{self.height}"
+            )
+        cam = self._camera
+        cam.fx, cam.fy, cam.cx, cam.cy = intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy
+
+        rgba = np.zeros((n, self.height, self.width, 4), np.uint8)
+        depth = np.zeros((n, self.height, self.width), np.float32)
+        for i in range(n):
+            gl_from_root = CV_TO_GL @ root_pose[i]
+            for link, T in self.link_transforms(qpos[i]).items():
+                self.scene.set_pose(self._link_nodes[link], gl_from_root @ T)
+            # Single-sample rendering onto a (0,0,0,0) background with opaque shading: the RGBA
+            # read-back already is black/transparent off the robot and alpha 255 on it.
+            rgba[i], depth[i] = self._gl.render(self.scene, flags=pyrender.RenderFlags.RGBA)
+        return RenderResult(rgba=rgba, depth=depth)
+
+    def close(self) -> None:
+        """Free the GL context (from the creating thread)."""
+        if self._gl is not None:
+            self._gl.delete()
+            self._gl = None

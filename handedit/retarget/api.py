@@ -1,0 +1,134 @@
+"""Retarget a chunk of MANO-order keypoints onto one embodiment.
+
+Frames are solved in order; each warm-starts from the last solved frame (primal and
+bound multipliers) and is pulled towards it by the smoothness term. A frame whose
+required keypoints (wrist, index/middle/pinky MCP: the palm frame) are invalid gets
+``Reason.NO_KEYPOINTS`` and the pose of the nearest solved frame; the chunk never aborts.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from handedit.embodiments.roster import get_embodiment, resolve_asset
+from handedit.keypoints import FINGERTIPS
+from handedit.reasons import STATUS_DTYPE, Reason
+from handedit.retarget.config import RetargetConfig
+from handedit.retarget.palm import keypoint_palm_frame
+from handedit.retarget.solver import Retargeter
+
+
+@dataclass
+class RetargetResult:
+    qpos: np.ndarray  # (n,dof) float32, columns = joint_names
+    root_pose: np.ndarray  # (n,4,4) float64 camera_from_root_link
+    fingertip_error_mm: np.ndarray  # (n,) float32, mean over the robot's (valid) fingertips
+    wrist_error_mm: np.ndarray  # (n,) float32
+    status: np.ndarray  # (n,) int16 Reason codes
+    joint_names: list[str] = field(default_factory=list)
+    solver_status: list[str] = field(default_factory=list)  # IPOPT return status per frame ("" if skipped)
+
+
+def get_retargeter(embodiment_id: str, cfg: RetargetConfig) -> Retargeter:
+    """The per-process solver for (embodiment, config), built on first use."""
+    ra = resolve_asset(get_embodiment(embodiment_id))
+    return _build(str(ra.path), embodiment_id, cfg)
+
+
+@functools.lru_cache(maxsize=32)
+def _build(path: str, embodiment_id: str, cfg: RetargetConfig) -> Retargeter:
+    ra = resolve_asset(get_embodiment(embodiment_id))
+    return Retargeter(ra.path, ra.asset, cfg)
+
+
+def _clip_f32(q: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """float32 qpos that is within the float64 limits exactly (rounding can step outside)."""
+    lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
+    lo32 = np.where(lo32.astype(np.float64) < lo, np.nextafter(lo32, np.float32(np.inf)), lo32)
+    hi32 = np.where(hi32.astype(np.float64) > hi, np.nextafter(hi32, np.float32(-np.inf)), hi32)
+    return np.clip(q.astype(np.float32), lo32, hi32)
+
+
+def retarget(
+    keypoints: np.ndarray,
+    keypoints_valid: np.ndarray,
+    embodiment_id: str,
+    cfg: RetargetConfig,
+    init: np.ndarray | None = None,
+) -> RetargetResult:
+    """Joint trajectory + camera_from_root poses reproducing the keypoints (see module doc).
+
+    ``init``: qpos (dof,) to start from and stay close to on the first frame (e.g. the last
+    frame of the previous chunk); None starts from the neutral pose.
+    """
+    kp = np.asarray(keypoints, dtype=np.float64)
+    valid = np.asarray(keypoints_valid, dtype=bool) & np.all(np.isfinite(kp), axis=-1)
+    n = kp.shape[0]
+    rt = get_retargeter(embodiment_id, cfg)
+    dof = len(rt.joint_names)
+    qpos = np.zeros((n, dof))
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    tip_err = np.full(n, np.nan)
+    wrist_err = np.full(n, np.nan)
+    status = np.full(n, Reason.NO_KEYPOINTS, dtype=STATUS_DTYPE)
+    solver_status = [""] * n
+    solved = np.zeros(n, dtype=bool)
+
+    tips_present = np.isin(rt.mano_idx, FINGERTIPS)
+    prev = None
+    q_anchor = None if init is None else np.asarray(init, float)
+    for i in range(n):
+        vi = valid[i]
+        if not vi[rt.required].all() or not vi[rt.mano_idx[tips_present]].any():
+            continue
+        targets = kp[i, rt.mano_idx]
+        w = rt.base_w * vi[rt.mano_idx]
+        if prev is None:
+            q0 = rt.q_neutral if q_anchor is None else q_anchor
+            pose0 = rt.init_pose(keypoint_palm_frame(kp[i]))
+            sol = rt.solve(targets, w, q0, pose0, q_prev=q_anchor)
+        else:
+            if cfg.warm_start:
+                q0, pose0, warm = prev.q, prev.camera_from_root, prev
+            else:  # cold: the palm-frame initialisation, neutral joints, no multipliers
+                q0, pose0, warm = rt.q_neutral, rt.init_pose(keypoint_palm_frame(kp[i])), None
+            sol = rt.solve(targets, w, q0, pose0, q_prev=prev.q, prev_pose=prev.camera_from_root, warm=warm)
+        solver_status[i] = sol.status
+        if not sol.ok:
+            status[i] = Reason.SOLVER_FAILED
+            continue
+        prev = sol
+        solved[i] = True
+        qpos[i], poses[i] = sol.q, sol.camera_from_root
+        pts = rt.robot_points(sol.q, sol.camera_from_root)
+        d = np.linalg.norm(pts - targets, axis=1) * 1000.0
+        tip_rows = rt.tip_rows[vi[rt.mano_idx[rt.tip_rows]]]
+        tip_err[i] = d[tip_rows].mean()
+        wrist_err[i] = d[rt.wrist_row]
+        if tip_err[i] > cfg.fingertip_reject_mm:
+            status[i] = Reason.FINGERTIP_ERROR
+        elif wrist_err[i] > cfg.wrist_reject_mm:
+            status[i] = Reason.WRIST_ERROR
+        else:
+            status[i] = Reason.OK
+
+    # unsolved frames take the nearest solved frame's pose (or neutral/identity)
+    idx = np.flatnonzero(solved)
+    for i in np.flatnonzero(~solved):
+        if idx.size:
+            j = idx[np.argmin(np.abs(idx - i))]
+            qpos[i], poses[i] = qpos[j], poses[j]
+        else:
+            qpos[i] = rt.q_neutral if init is None else init
+    return RetargetResult(
+        qpos=_clip_f32(qpos, rt.lower, rt.upper),
+        root_pose=poses,
+        fingertip_error_mm=tip_err.astype(np.float32),
+        wrist_error_mm=wrist_err.astype(np.float32),
+        status=status,
+        joint_names=list(rt.joint_names),
+        solver_status=solver_status,
+    )

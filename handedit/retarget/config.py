@@ -1,0 +1,39 @@
+"""Retargeting configuration (hashable: it keys the per-process solver cache)."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class RetargetConfig(BaseModel):
+    """Weights of the position-retargeting objective and QC thresholds.
+
+    Position residuals enter the cost in centimetres (so weights are O(1) and IPOPT's
+    tolerances are meaningful); ``smooth_q`` is per rad^2 of joint change, ``smooth_t`` per
+    cm^2 of root translation change and ``smooth_r`` per rad^2 of root rotation change
+    (as |R - R_prev|_F^2 / 2), all relative to the previous solved frame.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+    VERSION: ClassVar[int] = 1
+
+    wrist_weight: float = Field(1.0, ge=0)
+    fingertip_weight: float = Field(1.0, ge=0)
+    mcp_weight: float = Field(0.5, ge=0)
+    pip_weight: float = Field(0.25, ge=0)
+    dip_weight: float = Field(0.25, ge=0)
+    cmc_weight: float = Field(0.0, ge=0)
+    smooth_q: float = Field(0.05, ge=0)
+    smooth_t: float = Field(0.05, ge=0)
+    smooth_r: float = Field(0.5, ge=0)
+    reg_q: float = Field(1e-4, ge=0)  # pull towards the neutral pose: resolves redundant joints
+    max_iter: int = Field(100, ge=1)
+    tol: float = Field(1e-6, gt=0)
+    warm_start: bool = True  # primal + multipliers from the previous frame of the chunk
+    fingertip_reject_mm: float = Field(50.0, gt=0)
+    wrist_reject_mm: float = Field(50.0, gt=0)
+
+    def weight(self, kind: str) -> float:
+        return float(getattr(self, f"{'fingertip' if kind == 'tip' else kind}_weight"))

@@ -1,0 +1,182 @@
+"""One embodiment's per-frame position-retargeting NLP, built once and re-solved.
+
+Decision variables: the free joints ``q`` (box-bounded by the URDF limits) and the root
+pose in the camera frame, ``camera_from_root = [R_ref * cayley(c) | t]``. ``R_ref`` is a
+parameter (the initial guess's rotation), so c starts at 0 and the rotation stays well
+conditioned (Cayley has no singularity below 180 degrees).
+
+Cost (positions in cm): sum_k w_k |R p_k(q) + t - y_k|^2 + smooth_q |q - q_prev|^2
++ smooth_t |t - t_prev|^2 + smooth_r |R - R_prev|_F^2 / 2 + reg_q |q - q_neutral|^2, where
+the per-point weights w_k are parameters (0 for invalid keypoints) and the smoothness
+terms are switched by parameters (off on the first frame of a chunk). Building the casadi/IPOPT solver
+takes ~0.1-1 s; warm-started re-solves take a few ms, hence the cache in ``api``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from handedit.embodiments.kinematics import get_kinematics
+from handedit.embodiments.roster import UrdfAsset
+from handedit.keypoints import FINGERTIPS, WRIST
+from handedit.retarget.config import RetargetConfig
+
+CM = 100.0  # metres -> centimetres inside the cost
+_FAIL = {
+    "Infeasible_Problem_Detected", "Restoration_Failed", "Error_In_Step_Computation",
+    "Invalid_Number_Detected", "Internal_Error", "Invalid_Problem_Definition",
+    "Invalid_Option", "Not_Enough_Degrees_Of_Freedom", "Insufficient_Memory",
+    "NonIpopt_Exception_Thrown", "Unrecoverable_Exception",
+}
+
+
+@dataclass
+class FrameSolution:
+    q: np.ndarray  # (dof,) full actuated vector (locked joints included)
+    camera_from_root: np.ndarray  # (4,4)
+    ok: bool  # solver did not fail
+    x: np.ndarray  # raw decision vector (warm start)
+    lam_x: np.ndarray  # bound multipliers (warm start)
+    status: str
+
+
+def _cayley_sx(c: ca.SX) -> ca.SX:
+    K = ca.skew(c)
+    return ca.SX.eye(3) + 2.0 * (K + K @ K) / (1.0 + ca.dot(c, c))
+
+
+class Retargeter:
+    """Position retargeting for one (URDF asset, config); see module doc."""
+
+    def __init__(self, urdf_path: Path, asset: UrdfAsset, cfg: RetargetConfig):
+        self.cfg = cfg
+        self.asset = asset
+        self.kin = kin = get_kinematics(urdf_path)
+        self.joint_names = kin.joint_names
+        locked = dict(asset.locked_joints)
+        self.free = np.array([i for i, n in enumerate(kin.joint_names) if n not in locked], dtype=int)
+        self.q_locked = kin.neutral()
+        for n, v in locked.items():
+            self.q_locked[kin.joint_names.index(n)] = v
+        self.lower, self.upper = kin.lower, kin.upper
+        self.q_neutral = kin.neutral()
+        self.wrist_from_root = asset.wrist_from_root_matrix
+
+        kps = asset.keypoints
+        self.mano_idx = np.array([k.mano for k in kps], dtype=int)
+        self.base_w = np.array([cfg.weight(k.kind) for k in kps], dtype=float)
+        self.tip_rows = np.array([i for i, k in enumerate(kps) if k.mano in FINGERTIPS], dtype=int)
+        self.wrist_row = next(i for i, k in enumerate(kps) if k.mano == WRIST)
+        self.required = sorted({WRIST, 5, 9, 17})  # palm frame of the human keypoints
+        K, nf = len(kps), len(self.free)
+
+        # symbolic problem -------------------------------------------------------------
+        qf = ca.SX.sym("qf", nf)
+        t = ca.SX.sym("t", 3)
+        c = ca.SX.sym("c", 3)
+        q_full = ca.SX(self.q_locked)
+        for j, i in enumerate(self.free):
+            q_full[int(i)] = qf[j]
+        P_root = kin.points_expr([(k.link, k.offset) for k in kps], q_full)  # (3,K)
+        self._points_fn = ca.Function("points", [kin.q_sym], [kin.points_expr([(k.link, k.offset) for k in kps])])
+
+        Y = ca.SX.sym("Y", 3, K)  # targets, camera frame (m)
+        W = ca.SX.sym("W", K)  # per-point weights
+        q_prev = ca.SX.sym("q_prev", nf)
+        t_prev = ca.SX.sym("t_prev", 3)
+        R_ref = ca.SX.sym("R_ref", 3, 3)  # rotation about which c is parameterised
+        R_prev = ca.SX.sym("R_prev", 3, 3)
+        s_q = ca.SX.sym("s_q")  # joint smoothness on/off
+        s_pose = ca.SX.sym("s_pose")  # root pose smoothness on/off
+        R = R_ref @ _cayley_sx(c)
+        E = (R @ P_root + ca.repmat(t, 1, K) - Y) * CM
+        cost = ca.sum1(W * ca.sum2((E * E).T)) if K else 0
+        qn = ca.SX(self.q_neutral[self.free])
+        cost += s_q * cfg.smooth_q * ca.sumsqr(qf - q_prev)
+        # |R - R_prev|_F^2 / 2 ~ angle^2 for small angles
+        cost += s_pose * (cfg.smooth_t * ca.sumsqr((t - t_prev) * CM) + 0.5 * cfg.smooth_r * ca.sumsqr(R - R_prev))
+        cost += cfg.reg_q * ca.sumsqr(qf - qn)
+        x = ca.vertcat(qf, t, c)
+        p = ca.vertcat(ca.vec(Y), W, q_prev, t_prev, ca.vec(R_ref), ca.vec(R_prev), s_q, s_pose)
+        opts = {
+            "print_time": False,
+            "ipopt": {
+                "print_level": 0, "sb": "yes", "max_iter": cfg.max_iter, "tol": cfg.tol,
+                "acceptable_tol": 1e-4, "hessian_approximation": "exact",
+                "mu_strategy": "adaptive",
+            },
+        }
+        if cfg.warm_start:
+            opts["ipopt"].update({
+                "warm_start_init_point": "yes", "warm_start_bound_push": 1e-6,
+                "warm_start_mult_bound_push": 1e-6, "mu_init": 1e-4,
+            })
+        self.solver = ca.nlpsol("retarget", "ipopt", {"x": x, "p": p, "f": cost}, opts)
+        inf = 1e20
+        lo = np.where(np.isfinite(self.lower[self.free]), self.lower[self.free], -inf)
+        hi = np.where(np.isfinite(self.upper[self.free]), self.upper[self.free], inf)
+        self.lbx = np.concatenate([lo, np.full(6, -inf)])
+        self.ubx = np.concatenate([hi, np.full(6, inf)])
+        self.nf, self.K = nf, K
+
+    # -- numeric helpers ------------------------------------------------------------------
+    def robot_points(self, q: np.ndarray, camera_from_root: np.ndarray) -> np.ndarray:
+        """(K,3) correspondence points of the robot in the camera frame."""
+        P = np.asarray(self._points_fn(q), float)  # (3,K)
+        return (camera_from_root[:3, :3] @ P + camera_from_root[:3, 3:4]).T
+
+    def init_pose(self, camera_from_wrist: np.ndarray) -> np.ndarray:
+        return camera_from_wrist @ self.wrist_from_root
+
+    def solve(
+        self,
+        targets: np.ndarray,  # (K,3) camera frame
+        weights: np.ndarray,  # (K,)
+        q0: np.ndarray,  # (dof,) initial guess
+        pose0: np.ndarray,  # (4,4) initial guess (its rotation becomes R_ref)
+        q_prev: np.ndarray | None = None,
+        prev_pose: np.ndarray | None = None,
+        warm: FrameSolution | None = None,
+    ) -> FrameSolution:
+        """Solve one frame. ``q_prev`` / ``prev_pose`` switch the smoothness terms on."""
+        qf0 = np.clip(q0[self.free], self.lower[self.free], self.upper[self.free])
+        R_ref = pose0[:3, :3]
+        x0 = np.concatenate([qf0, pose0[:3, 3], np.zeros(3)])
+        p = np.concatenate([
+            targets.T.reshape(-1, order="F"), weights,
+            qf0 if q_prev is None else q_prev[self.free],
+            pose0[:3, 3] if prev_pose is None else prev_pose[:3, 3],
+            R_ref.reshape(-1, order="F"),
+            (R_ref if prev_pose is None else prev_pose[:3, :3]).reshape(-1, order="F"),
+            [0.0 if q_prev is None else 1.0, 0.0 if prev_pose is None else 1.0],
+        ])
+        args = dict(x0=x0, p=p, lbx=self.lbx, ubx=self.ubx)
+        if warm is not None and self.cfg.warm_start:
+            args["lam_x0"] = warm.lam_x
+        try:
+            sol = self.solver(**args)
+            st = self.solver.stats()
+            status = str(st.get("return_status", ""))
+            xs = np.asarray(sol["x"], float).ravel()
+            lam = np.asarray(sol["lam_x"], float).ravel()
+        except RuntimeError as e:  # casadi raises on hard IPOPT errors
+            status, xs, lam = f"exception: {e}", x0, np.zeros_like(x0)
+        ok = status not in _FAIL and not status.startswith("exception") and bool(np.all(np.isfinite(xs)))
+        if not ok:
+            xs = x0
+        q = self.q_locked.copy()
+        q[self.free] = np.clip(xs[: self.nf], self.lower[self.free], self.upper[self.free])
+        pose = np.eye(4)
+        pose[:3, :3] = R_ref @ _cayley_np(xs[self.nf + 3:])
+        pose[:3, 3] = xs[self.nf: self.nf + 3]
+        return FrameSolution(q, pose, ok, xs, lam, status)
+
+
+def _cayley_np(c: np.ndarray) -> np.ndarray:
+    from handedit.retarget.palm import cayley
+
+    return cayley(c)

@@ -1,0 +1,81 @@
+"""The source interface: a clip is frames + camera + hand keypoints (+ object, metadata).
+
+A source is described by a small, picklable spec (pydantic) so that Dask workers can
+open it themselves and read any frame range: ingest then runs chunk-parallel, and the
+driver never ships pixels. Dataset adapters (EgoDex, ARCTIC, OakInk2, HOI4D, HO-Cap)
+implement the same two calls; the MANO-parameter datasets convert to 21 keypoints in
+their adapter, so every stage downstream sees one representation (see
+``handedit.keypoints`` for the joint order).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from handedit.camera import Intrinsics
+
+
+class SourceError(ValueError):
+    """Bad source input; the message names the file and the fix."""
+
+
+@dataclass(frozen=True)
+class ClipInfo:
+    clip_id: str
+    n_frames: int
+    height: int
+    width: int
+    fps: float
+    intrinsics: Intrinsics
+    has_keypoints: bool
+    has_object: bool
+    fingerprint: str  # content identity of the source (file hash, or generator seed + params)
+    meta: dict = field(default_factory=dict)
+    ground_truth: tuple[str, ...] = ()  # names of ClipChunk.gt arrays this source provides
+
+
+@dataclass
+class ClipChunk:
+    """Frames [start, stop) of a clip. Arrays are per frame along axis 0."""
+
+    start: int
+    frames: np.ndarray  # (n,H,W,3) uint8 RGB
+    world_from_camera: np.ndarray  # (n,4,4) float64
+    keypoints: np.ndarray  # (n,21,3) float32, camera frame, metres, MANO order; 0 where invalid
+    keypoints_valid: np.ndarray  # (n,21) bool
+    frame_ok: np.ndarray  # (n,) bool: False where the frame could not be decoded
+    object_mask: np.ndarray | None = None  # (n,H,W) bool
+    object_pose: np.ndarray | None = None  # (n,4,4) camera_from_object
+    gt: dict[str, np.ndarray] = field(default_factory=dict)  # ground truth, e.g. hand_mask
+
+    @property
+    def n(self) -> int:
+        return int(self.frames.shape[0])
+
+
+@runtime_checkable
+class Source(Protocol):
+    def info(self) -> ClipInfo: ...
+
+    def read(self, start: int, stop: int) -> ClipChunk: ...
+
+    def object_mesh(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(vertices (V,3) in the object frame, faces (F,3)) when the source has an object model."""
+        ...
+
+
+def frame_status(chunk: ClipChunk) -> tuple[np.ndarray, dict[int, str]]:
+    """Per-frame ingest status: undecodable frames and blank (constant) frames are rejected."""
+    from handedit.reasons import Reason
+
+    status = np.full(chunk.n, int(Reason.OK), dtype=np.int16)
+    details: dict[int, str] = {}
+    for i in range(chunk.n):
+        if not chunk.frame_ok[i]:
+            status[i], details[i] = Reason.CORRUPT_FRAME, "frame could not be decoded"
+        elif int(chunk.frames[i].max()) - int(chunk.frames[i].min()) < 4:
+            status[i], details[i] = Reason.BLANK_FRAME, f"blank frame (constant value {int(chunk.frames[i].max())})"
+    return status, details

@@ -1,0 +1,236 @@
+"""Background restoration behind the removed hand: propagate from other frames, then inpaint.
+
+Why: in a video the background behind the hand is usually *seen* in another frame of
+the window (the hand moves, the head camera moves slowly), and a real pixel beats any
+hallucinated one. So for each target frame, other frames of the window are aligned to it
+by a homography fitted to ORB features on their visible background (a plane-induced
+model: exact for a rotating camera or a distant/planar scene, close enough for slow
+egocentric motion), checked by their photometric error on the shared background, gain
+corrected, and their unmasked pixels vote (per-pixel median when >= 3 frames saw the
+pixel, else the temporally nearest one). Only what no frame saw is inpainted
+(OpenCV Telea by default, or the contrib ``xphoto`` FSR / shift-map inpainters).
+
+This is the classical stand-in for ProPainter (the paper's default); the ``method``
+field lets a learned video inpainter plug in later.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar, Literal
+
+import cv2
+import numpy as np
+import pydantic
+
+from handedit.reasons import STATUS_DTYPE, Reason
+from handedit.vision.skin import prior_rule, to_ycrcb
+
+
+class RestoreConfig(pydantic.BaseModel):
+    VERSION: ClassVar[int] = 1
+    model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
+
+    method: Literal["classical"] = "classical"
+    window: int = pydantic.Field(12, ge=0)  # frames each side of a target the caller should provide
+    max_sources: int = pydantic.Field(8, ge=0)  # frames of the window used per target (spread evenly)
+    dilate_px: int = pydantic.Field(6, ge=0)  # mask margin: segmentation edges and soft shadows
+    align: Literal["homography", "identity"] = "homography"
+    feature_max_side: int = 640  # ORB runs at this resolution
+    min_inliers: int = 20
+    max_align_error: float = 6.0  # median |grey difference| on shared background, else skip the frame
+    gain_compensation: bool = True
+    inpaint: Literal["telea", "ns", "fsr_fast", "shiftmap"] = "telea"
+    inpaint_radius: int = 5
+    residue_threshold: float = 0.25  # skin-coloured fraction of the restored region (above the ring's) -> RESIDUE
+
+
+@dataclass
+class RestoreResult:
+    background: np.ndarray  # (n,H,W,3) uint8
+    status: np.ndarray  # (n,) int16 Reason
+    filled_from_video: np.ndarray  # (n,) float32 fraction of hole pixels propagated (0 when no hole)
+    method: str
+
+
+def _dilate(mask: np.ndarray, px: int) -> np.ndarray:
+    if px <= 0:
+        return mask.astype(bool)
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * px + 1, 2 * px + 1))
+    return cv2.dilate(mask.astype(np.uint8), k).astype(bool)
+
+
+class _Features:
+    """ORB features per frame on its visible background, computed once."""
+
+    def __init__(self, frames: np.ndarray, holes: np.ndarray, max_side: int):
+        self.frames, self.holes = frames, holes
+        h, w = frames.shape[1:3]
+        self.s = min(1.0, max_side / max(h, w))
+        self.orb = cv2.ORB_create(nfeatures=2000, edgeThreshold=15, patchSize=15, fastThreshold=7)
+        self._cache: dict[int, tuple] = {}
+
+    def get(self, i: int) -> tuple:
+        if i not in self._cache:
+            g = cv2.cvtColor(self.frames[i], cv2.COLOR_RGB2GRAY)
+            m = (~self.holes[i]).astype(np.uint8) * 255
+            if self.s < 1:
+                size = (int(round(g.shape[1] * self.s)), int(round(g.shape[0] * self.s)))
+                g = cv2.resize(g, size, interpolation=cv2.INTER_AREA)
+                m = cv2.resize(m, size, interpolation=cv2.INTER_NEAREST)
+            kps, des = self.orb.detectAndCompute(g, m)
+            pts = np.array([k.pt for k in kps], np.float32).reshape(-1, 2) / self.s
+            self._cache[i] = (pts, des)
+        return self._cache[i]
+
+
+def _homography(feats: _Features, j: int, t: int, cfg: RestoreConfig) -> np.ndarray | None:
+    """3x3 taking frame j's pixels onto frame t's, or None when the fit is not trusted."""
+    pj, dj = feats.get(j)
+    pt, dt = feats.get(t)
+    if dj is None or dt is None or len(pj) < cfg.min_inliers or len(pt) < cfg.min_inliers:
+        return None
+    matches = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(dj, dt)
+    if len(matches) < cfg.min_inliers:
+        return None
+    src = pj[[m.queryIdx for m in matches]]
+    dst = pt[[m.trainIdx for m in matches]]
+    Hm, inl = cv2.findHomography(src, dst, cv2.RANSAC, 3.0)
+    if Hm is None or inl is None or int(inl.sum()) < cfg.min_inliers:
+        return None
+    det = float(np.linalg.det(Hm[:2, :2]))
+    if not (0.5 < det < 2.0) or np.abs(Hm[2, :2]).max() > 2e-3:
+        return None  # implausible for slow egocentric motion
+    return Hm
+
+
+def _sources(t: int, m: int, cfg: RestoreConfig) -> list[int]:
+    """Frames of the window around t, spread evenly, nearest first."""
+    cand = [j for j in range(max(0, t - cfg.window), min(m, t + cfg.window + 1)) if j != t]
+    if len(cand) > cfg.max_sources:
+        pick = np.linspace(0, len(cand) - 1, cfg.max_sources).round().astype(int)
+        cand = [cand[k] for k in sorted(set(pick))]
+    return sorted(cand, key=lambda j: (abs(j - t), j))
+
+
+def _inpaint(img: np.ndarray, hole: np.ndarray, cfg: RestoreConfig) -> np.ndarray:
+    bgr = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+    m8 = hole.astype(np.uint8) * 255
+    out = None
+    if cfg.inpaint in ("fsr_fast", "shiftmap") and hasattr(cv2, "xphoto"):
+        algo = cv2.xphoto.INPAINT_FSR_FAST if cfg.inpaint == "fsr_fast" else cv2.xphoto.INPAINT_SHIFTMAP
+        try:
+            dst = np.zeros_like(bgr)
+            cv2.xphoto.inpaint(bgr, 255 - m8, dst, algo)  # xphoto: non-zero = known pixel
+            out = dst
+        except cv2.error:
+            out = None
+    if out is None:
+        flag = cv2.INPAINT_NS if cfg.inpaint == "ns" else cv2.INPAINT_TELEA
+        out = cv2.inpaint(bgr, m8, cfg.inpaint_radius, flag)
+    res = img.copy()
+    res[hole] = cv2.cvtColor(out, cv2.COLOR_BGR2RGB)[hole]
+    return res
+
+
+def _residue(img: np.ndarray, hole: np.ndarray, thr: float) -> bool:
+    """Skin-coloured pixels left in the restored region, beyond what its surroundings show."""
+    if not hole.any():
+        return False
+    skin = prior_rule(to_ycrcb(img))
+    ring = _dilate(hole, 15) & ~hole
+    ring_rate = float(skin[ring].mean()) if ring.any() else 0.0
+    return float(skin[hole].mean()) > thr + ring_rate
+
+
+def restore_background(
+    frames: np.ndarray,
+    masks: np.ndarray,
+    targets: np.ndarray,
+    cfg: RestoreConfig = RestoreConfig(),
+    *,
+    frame_ok: np.ndarray | None = None,
+) -> RestoreResult:
+    """Background for ``frames[targets]`` with ``masks`` (hand/arm, bool) removed.
+
+    ``frames`` is the window: the targets plus up to ``cfg.window`` frames each side.
+    ``frame_ok`` (optional, (m,) bool) excludes undecodable frames as sources.
+    """
+    if cfg.method != "classical":
+        raise ValueError(f"restore_background: unknown method {cfg.method!r}; this build has 'classical'")
+    frames = np.asarray(frames)
+    masks = np.asarray(masks, dtype=bool)
+    targets = np.asarray(targets, dtype=int).reshape(-1)
+    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8 or masks.shape != frames.shape[:3]:
+        raise ValueError(f"restore_background: frames (m,H,W,3) uint8 and masks (m,H,W) bool, got {frames.shape}, {masks.shape}")
+    m, H, W = frames.shape[:3]
+    ok = np.ones(m, bool) if frame_ok is None else np.asarray(frame_ok, bool)
+    holes = np.stack([_dilate(mk, cfg.dilate_px) for mk in masks]) if m else masks
+    feats = _Features(frames, holes, cfg.feature_max_side)
+    gray = [None] * m
+
+    def grey(i: int) -> np.ndarray:
+        if gray[i] is None:
+            gray[i] = cv2.cvtColor(frames[i], cv2.COLOR_RGB2GRAY).astype(np.float32)
+        return gray[i]
+
+    n = len(targets)
+    out = np.zeros((n, H, W, 3), np.uint8)
+    status = np.full(n, Reason.OK, STATUS_DTYPE)
+    filled_frac = np.zeros(n, np.float32)
+    ones = np.ones((H, W), np.uint8)
+    for k, t in enumerate(targets):
+        img = frames[t].copy()
+        hole = holes[t]
+        if not hole.any():
+            out[k] = img
+            continue
+        ring = _dilate(hole, 25) & ~hole
+        hy, hx = np.nonzero(hole)
+        cands, valids = [], []
+        for j in _sources(int(t), m, cfg) if ok[t] else []:
+            if not ok[j]:
+                continue
+            Hm = np.eye(3) if cfg.align == "identity" else _homography(feats, j, int(t), cfg)
+            if Hm is None:
+                Hm = np.eye(3)  # textureless or static: identity, if the photometric check agrees
+            warped = cv2.warpPerspective(frames[j], Hm, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+            seen = cv2.warpPerspective((~holes[j]).astype(np.uint8) & ones, Hm, (W, H), flags=cv2.INTER_NEAREST) > 0
+            shared = seen & ~hole
+            if shared.sum() < 100:
+                continue
+            gw = cv2.cvtColor(warped, cv2.COLOR_RGB2GRAY).astype(np.float32)
+            if float(np.median(np.abs(gw[shared] - grey(int(t))[shared]))) > cfg.max_align_error:
+                continue  # misaligned, lighting jump or moving scene: would ghost
+            vals = warped[hy, hx].astype(np.float32)
+            if cfg.gain_compensation:
+                near = ring & seen
+                if near.sum() >= 50:
+                    gain = img[near].astype(np.float32).mean(0) / np.maximum(warped[near].astype(np.float32).mean(0), 1.0)
+                    vals *= np.clip(gain, 0.8, 1.25)
+            cands.append(vals)
+            valids.append(seen[hy, hx])
+        filled = np.zeros(len(hy), bool)
+        if cands:
+            V = np.stack(valids)  # (k,P)
+            C = np.stack(cands)  # (k,P,3)
+            cnt = V.sum(0)
+            filled = cnt > 0
+            first = np.argmax(V, axis=0)  # nearest frame that saw the pixel
+            val = C[first, np.arange(len(hy))]
+            many = cnt >= 3
+            if many.any():
+                Cm = np.where(V[:, many, None], C[:, many], np.nan)
+                val[many] = np.nanmedian(Cm, axis=0)
+            img[hy[filled], hx[filled]] = np.clip(np.round(val[filled]), 0, 255).astype(np.uint8)
+        filled_frac[k] = float(filled.mean())
+        rest = np.zeros((H, W), bool)
+        rest[hy[~filled], hx[~filled]] = True
+        if rest.any():
+            img = _inpaint(img, rest, cfg)
+        out[k] = img
+        if _residue(img, hole, cfg.residue_threshold):
+            status[k] = Reason.RESIDUE
+    inp = {"telea": "telea", "ns": "ns", "fsr_fast": "xphoto-fsr", "shiftmap": "xphoto-shiftmap"}[cfg.inpaint]
+    align = "homography" if cfg.align == "homography" else "identity"
+    return RestoreResult(out, status, filled_frac, f"classical:propagate-{align}+inpaint-{inp}")

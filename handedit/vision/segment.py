@@ -1,0 +1,468 @@
+"""Hand and hand-arm segmentation, classical: keypoint-seeded GrabCut with a skin model.
+
+Why this shape: the pipeline already has 21 hand keypoints per frame, so the hand's
+skeleton (drawn thin) is a near-certain foreground seed and its hull bounds where the
+hand can be. GrabCut then learns foreground/background colour mixtures per frame and
+snaps to the real boundary. The forearm is not in the keypoints: it is searched in a
+corridor from the wrist along the forearm direction (away from the knuckles) up to the
+frame border and grown by the skin model. Without keypoints (a raw video) the skin
+model alone proposes the largest skin components and GrabCut refines them; the hand is
+then split from the arm at the narrowest point (the wrist) of the component's width
+profile, which is a heuristic, so these frames get a lower confidence.
+
+Temporal consistency across the chunk comes from (1) one skin model fitted to the
+whole chunk, and (2) blending each frame's soft mask with its neighbours', warped by the
+similarity transform between their keypoints (identity without keypoints).
+
+Masks are computed at a working resolution (``work_max_side``) and brought back to full
+resolution with a guided filter, which puts the edge on the image's real edge.
+
+Confidence proxy (``SegmentResult.confidence``, in [0, 1]; not a calibrated probability):
+    with keypoints:    0.3 * kp_cover + 0.45 * skin + 0.25 * stability
+    without keypoints: no_keypoint_factor * (0.5 * skin + 0.5 * stability)
+where ``kp_cover`` is the fraction of valid in-image keypoints that fall inside the
+hand-arm mask (dilated by 2 px at working resolution), ``skin`` the fraction of the
+hand mask inside the generic skin-chroma box (``skin.prior_rule``; deliberately not the
+chunk-fitted model, which is fitted to the seeds and would confirm wrong keypoints;
+gloved hands therefore score low and go to review), and ``stability`` the mean IoU of the
+hand-arm mask with its warped neighbours in the chunk (0.75, "unknown", for a frame
+without usable neighbours). Skin weighs most because keypoint seeds make ``kp_cover``
+high almost by construction, even when the keypoints are wrong.
+Frames below ``min_confidence`` (default 0.5) get ``Reason.LOW_CONFIDENCE``; a model
+segmenter plugged in later reports its own score against the paper's 0.75.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar, Literal
+
+import cv2
+import numpy as np
+import pydantic
+
+from handedit.keypoints import MCPS, N_JOINTS, PARENT, WRIST
+from handedit.reasons import STATUS_DTYPE, Reason
+from handedit.vision.skin import SkinModel, prior_rule, to_ycrcb
+
+_TIP_JOINTS = frozenset((4, 8, 12, 16, 20))
+_UNKNOWN_STABILITY = 0.75  # stability term for a frame without usable neighbours
+
+
+class SegmentConfig(pydantic.BaseModel):
+    VERSION: ClassVar[int] = 1
+    model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
+
+    method: Literal["classical"] = "classical"
+    work_max_side: int = pydantic.Field(480, ge=64)  # processing resolution (longest side)
+    grabcut_iters: int = pydantic.Field(3, ge=1)
+    min_keypoints: int = pydantic.Field(6, ge=3)  # valid joints (wrist included) to seed a frame
+    skin_threshold: float = pydantic.Field(0.3, gt=0, lt=1)  # skin prob that marks "probably hand"
+    roi_margin: float = 0.6  # hand region = keypoint hull grown by this x hand scale
+    forearm_width: float = 1.0  # forearm corridor width, x hand scale
+    wrist_margin: float = 0.15  # the hand keeps this much (x hand scale) past the wrist joint
+    temporal_weight: float = pydantic.Field(0.2, ge=0, le=0.5)  # weight of each neighbour's soft mask
+    guided_eps: float = pydantic.Field(0.1, gt=0)  # guided-filter regulariser, in units of full intensity
+    min_area_frac: float = 0.001  # masks / skin components smaller than this fraction of the frame are empty
+    max_components: int = pydantic.Field(2, ge=1)  # hands (arms) kept without keypoints
+    wrist_factor: float = 1.4  # without keypoints: wrist cut this many palm radii past the palm
+    blank_std: float = 2.0  # grey-level std below which a frame is blank
+    min_confidence: float = 0.5
+    no_keypoint_factor: float = pydantic.Field(0.8, gt=0, le=1)
+
+
+@dataclass
+class SegmentResult:
+    hand_mask: np.ndarray  # (n,H,W) bool: wrist and distal
+    handarm_mask: np.ndarray  # (n,H,W) bool: hand plus forearm
+    confidence: np.ndarray  # (n,) float32, see the module docstring
+    status: np.ndarray  # (n,) int16 Reason
+    method: str
+
+
+# ---------------------------------------------------------------------------------------
+# keypoint geometry (working-resolution pixels)
+
+
+def _usable(pts: np.ndarray, valid: np.ndarray, shape: tuple[int, int], cfg: SegmentConfig) -> bool:
+    if not valid[WRIST] or valid.sum() < cfg.min_keypoints:
+        return False
+    h, w = shape
+    p = pts[valid]
+    inside = (p[:, 0] >= 0) & (p[:, 0] < w) & (p[:, 1] >= 0) & (p[:, 1] < h)
+    return int(inside.sum()) >= 3
+
+
+def _hand_scale(pts: np.ndarray, valid: np.ndarray) -> float:
+    """Palm size in pixels: max of wrist->middle-MCP and index-MCP->pinky-MCP spans."""
+    cands = []
+    for a, b, k in ((WRIST, 9, 1.0), (5, 17, 1.25), (WRIST, 5, 1.0), (WRIST, 17, 1.1)):
+        if valid[a] and valid[b]:
+            cands.append(k * float(np.linalg.norm(pts[a] - pts[b])))
+    if not cands:
+        p = pts[valid]
+        cands.append(0.5 * float(np.linalg.norm(p.max(0) - p.min(0))))
+    return max(4.0, max(cands))
+
+
+def _forearm_dir(pts: np.ndarray, valid: np.ndarray) -> np.ndarray | None:
+    """Unit vector from the knuckles through the wrist (points up the forearm)."""
+    knuckles = [j for j in MCPS if valid[j]]
+    ref = pts[knuckles].mean(0) if knuckles else pts[valid].mean(0)
+    d = pts[WRIST] - ref
+    n = float(np.linalg.norm(d))
+    return d / n if n > 1e-3 else None
+
+
+def _ipt(p: np.ndarray) -> tuple[int, int]:
+    return int(round(float(p[0]))), int(round(float(p[1])))
+
+
+def _draw_skeleton(shape: tuple[int, int], pts: np.ndarray, valid: np.ndarray, thickness: int, tip_frac: float) -> np.ndarray:
+    """Bones as lines; tip bones stop at ``tip_frac`` so seeds stay off the boundary."""
+    m = np.zeros(shape, np.uint8)
+    for j in range(1, N_JOINTS):
+        p = PARENT[j]
+        if valid[j] and valid[p]:
+            end = pts[p] + tip_frac * (pts[j] - pts[p]) if j in _TIP_JOINTS else pts[j]
+            cv2.line(m, _ipt(pts[p]), _ipt(end), 1, max(1, thickness), cv2.LINE_8)
+    palm = [j for j in (WRIST, 1, 5, 9, 13, 17) if valid[j]]
+    if len(palm) >= 3:
+        hull = cv2.convexHull(np.round(pts[palm]).astype(np.int32))
+        cv2.fillConvexPoly(m, hull, 1)
+    return m.astype(bool)
+
+
+def _disk(r: float) -> np.ndarray:
+    r = max(1, int(round(r)))
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+
+
+def _half_plane(shape: tuple[int, int], origin: np.ndarray, direction: np.ndarray, offset: float) -> np.ndarray:
+    """Pixels with (p - origin) . direction <= offset (the distal side of the wrist line)."""
+    h, w = shape
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+    return (xs - origin[0]) * direction[0] + (ys - origin[1]) * direction[1] <= offset
+
+
+# ---------------------------------------------------------------------------------------
+# per-frame segmentation at working resolution
+
+
+def _grabcut(bgr: np.ndarray, init: np.ndarray, iters: int) -> np.ndarray:
+    """GrabCut on the bounding box of the uncertain region; returns a bool fg mask."""
+    unsure = init != cv2.GC_BGD
+    fg0 = (init == cv2.GC_FGD) | (init == cv2.GC_PR_FGD)
+    if not unsure.any() or not fg0.any():
+        return fg0
+    ys, xs = np.nonzero(unsure)
+    h, w = init.shape
+    pad = max(8, int(0.1 * max(np.ptp(ys), np.ptp(xs))))
+    y0, y1 = max(0, ys.min() - pad), min(h, ys.max() + pad + 1)
+    x0, x1 = max(0, xs.min() - pad), min(w, xs.max() + pad + 1)
+    m = init[y0:y1, x0:x1].copy()
+    bg_any = ((m == cv2.GC_BGD) | (m == cv2.GC_PR_BGD)).any()
+    if not bg_any:
+        return fg0
+    try:
+        bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+        cv2.grabCut(np.ascontiguousarray(bgr[y0:y1, x0:x1]), m, None, bgd, fgd, iters, cv2.GC_INIT_WITH_MASK)
+    except cv2.error:  # degenerate colour statistics: keep the initial proposal
+        return fg0
+    out = np.zeros_like(fg0)
+    out[y0:y1, x0:x1] = (m == cv2.GC_FGD) | (m == cv2.GC_PR_FGD)
+    return out
+
+
+def _keep_touching(mask: np.ndarray, seeds: np.ndarray) -> np.ndarray:
+    """Connected components of ``mask`` that touch ``seeds``."""
+    n, lab = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return mask
+    keep = np.unique(lab[seeds & mask])
+    keep = keep[keep > 0]
+    return np.isin(lab, keep)
+
+
+@dataclass
+class _KpFrame:
+    pts: np.ndarray  # (21,2) working px
+    valid: np.ndarray  # (21,) bool
+    scale: float
+    forearm: np.ndarray | None
+
+
+def _segment_kp(bgr: np.ndarray, prob: np.ndarray, kp: _KpFrame, cfg: SegmentConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(handarm, hand) bool masks for a frame seeded by its keypoints."""
+    shape = prob.shape
+    s = kp.scale
+    sure = _draw_skeleton(shape, kp.pts, kp.valid, int(round(0.08 * s)), tip_frac=0.7)
+    sure = cv2.erode(sure.astype(np.uint8), _disk(0.04 * s)).astype(bool) | _draw_skeleton(
+        shape, kp.pts, kp.valid, 1, tip_frac=0.7
+    )
+    likely = _draw_skeleton(shape, kp.pts, kp.valid, int(round(0.3 * s)), tip_frac=1.0)
+    roi = cv2.dilate(likely.astype(np.uint8), _disk(cfg.roi_margin * s)).astype(bool)
+    corridor = np.zeros(shape, np.uint8)
+    if kp.forearm is not None:
+        far = kp.pts[WRIST] + kp.forearm * float(shape[0] + shape[1])
+        cv2.line(corridor, _ipt(kp.pts[WRIST]), _ipt(far), 1, max(2, int(round(cfg.forearm_width * s))))
+        roi |= cv2.dilate(corridor, _disk(0.3 * s)).astype(bool)
+
+    init = np.full(shape, cv2.GC_BGD, np.uint8)
+    init[roi] = cv2.GC_PR_BGD
+    skin = prob >= cfg.skin_threshold
+    init[roi & skin] = cv2.GC_PR_FGD
+    # Thick bones over clearly non-skin pixels would teach GrabCut's foreground model the
+    # background's colours (it then swallows whole regions): those stay "probably bg".
+    init[likely & (prob >= 0.05)] = cv2.GC_PR_FGD
+    init[sure] = cv2.GC_FGD
+    fg = _grabcut(bgr, init, cfg.grabcut_iters)
+    fg = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_CLOSE, _disk(1)).astype(bool)
+    fg = _keep_touching(fg, sure)
+    if kp.forearm is None:
+        return fg, fg
+    hand = fg & _half_plane(shape, kp.pts[WRIST], kp.forearm, cfg.wrist_margin * s)
+    return fg, hand
+
+
+def _split_component(comp: np.ndarray, wrist_factor: float) -> np.ndarray:
+    """Hand part of one skin component without keypoints (classic palm-circle cut).
+
+    The arm enters from the frame border, so the component's principal axis, oriented
+    away from where it touches the border, points from the forearm to the fingers.
+    Walking from the distal end, fingers are thin and the palm is the first place where
+    the largest inscribed circle (distance transform) reaches 80% of its maximum; the
+    wrist is ``wrist_factor`` palm radii further toward the arm. A component that does
+    not touch the border is all hand.
+    """
+    h, w = comp.shape
+    ys, xs = np.nonzero(comp)
+    border = (xs == 0) | (xs == w - 1) | (ys == 0) | (ys == h - 1)
+    if border.sum() < 3 or len(xs) < 20:
+        return comp
+    pts = np.stack([xs, ys], 1).astype(np.float64)
+    centre = pts.mean(0)
+    evals, evecs = np.linalg.eigh(np.cov((pts - centre).T))
+    axis = evecs[:, np.argmax(evals)]  # unit principal direction
+    anchor = pts[border].mean(0)
+    if (centre - anchor) @ axis < 0:
+        axis = -axis  # now points from the border (arm) toward the fingers
+    u = (pts @ axis).max() - pts @ axis  # 0 at the distal end, growing toward the arm
+    dist = cv2.distanceTransform(np.pad(comp, 1).astype(np.uint8), cv2.DIST_L2, 5)[1:-1, 1:-1]
+    dt = dist[ys, xs]
+    bins = u.astype(int)
+    prof = np.zeros(int(bins.max()) + 1)
+    np.maximum.at(prof, bins, dt)
+    prof = np.convolve(prof, np.ones(5) / 5.0, mode="same")
+    palm_u = int(np.argmax(prof >= 0.8 * prof.max()))
+    # the palm's circle: best radius within a palm radius past the first hit
+    r = float(prof[palm_u : palm_u + int(prof[palm_u]) + 1].max())
+    wrist_u = palm_u + wrist_factor * r
+    if wrist_u >= u.max():
+        return comp
+    hand = np.zeros_like(comp)
+    sel = u <= wrist_u
+    hand[ys[sel], xs[sel]] = True
+    return hand
+
+
+def _segment_nokp(bgr: np.ndarray, ycc: np.ndarray, prob: np.ndarray, cfg: SegmentConfig) -> tuple[np.ndarray, np.ndarray]:
+    shape = prob.shape
+    area = shape[0] * shape[1]
+    cand = ((prob >= 0.5 * (1 + cfg.skin_threshold)) | prior_rule(ycc)).astype(np.uint8)
+    cand = cv2.morphologyEx(cand, cv2.MORPH_OPEN, _disk(1))
+    cand = cv2.morphologyEx(cand, cv2.MORPH_CLOSE, _disk(2))
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(cand, connectivity=8)
+    if n <= 1:
+        empty = np.zeros(shape, bool)
+        return empty, empty
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    order = np.argsort(-areas)
+    keep = [i + 1 for i in order[: cfg.max_components] if areas[i] >= max(cfg.min_area_frac * area, 0.25 * areas.max())]
+    blobs = np.isin(lab, keep)
+    if not blobs.any():
+        return blobs, blobs
+    diag = float(np.hypot(*shape))
+    init = np.full(shape, cv2.GC_BGD, np.uint8)
+    init[cv2.dilate(blobs.astype(np.uint8), _disk(0.04 * diag)).astype(bool)] = cv2.GC_PR_BGD
+    init[blobs] = cv2.GC_PR_FGD
+    core = cv2.erode(blobs.astype(np.uint8), _disk(2)).astype(bool) & (prob >= 0.5)
+    init[core] = cv2.GC_FGD
+    fg = _grabcut(bgr, init, cfg.grabcut_iters)
+    fg = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_CLOSE, _disk(1)).astype(bool)
+    fg = _keep_touching(fg, core if core.any() else blobs)
+    hand = np.zeros(shape, bool)
+    n2, lab2 = cv2.connectedComponents(fg.astype(np.uint8), connectivity=8)
+    for i in range(1, n2):
+        comp = lab2 == i
+        if comp.sum() >= cfg.min_area_frac * area:
+            hand |= _split_component(comp, cfg.wrist_factor)
+    return fg, hand
+
+
+# ---------------------------------------------------------------------------------------
+# chunk-level driver
+
+
+def _fit_skin(ycc: list[np.ndarray], seeds: list[np.ndarray | None]) -> SkinModel:
+    """One skin model for the chunk: keypoint seeds if any, else the prior rule's pixels."""
+    rng = np.random.default_rng(0)
+    samples = [y[s][:, 1:3] for y, s in zip(ycc, seeds) if s is not None and s.any()]
+    if not samples:
+        samples = [y[prior_rule(y)][:, 1:3] for y in ycc]
+    x = np.concatenate(samples) if samples else np.zeros((0, 2))
+    if len(x) > 50_000:
+        x = x[rng.choice(len(x), 50_000, replace=False)]
+    return SkinModel.fit(x) or SkinModel.prior()
+
+
+def _warp(mask: np.ndarray, A: np.ndarray | None) -> np.ndarray:
+    if A is None:
+        return mask
+    h, w = mask.shape
+    return cv2.warpAffine(mask, A, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def _kp_transform(a: _KpFrame | None, b: _KpFrame | None) -> np.ndarray | None:
+    """Similarity taking frame a's keypoints onto frame b's (None: identity)."""
+    if a is None or b is None:
+        return None
+    common = a.valid & b.valid
+    if common.sum() < 3:
+        return None
+    A, _ = cv2.estimateAffinePartial2D(a.pts[common].astype(np.float32), b.pts[common].astype(np.float32))
+    return A
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    u = np.logical_or(a, b).sum()
+    return float(np.logical_and(a, b).sum() / u) if u else 1.0
+
+
+def _upsample(soft: np.ndarray, guide: np.ndarray, radius: int, eps: float) -> np.ndarray:
+    h, w = guide.shape[:2]
+    up = cv2.resize(soft.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
+    if hasattr(cv2, "ximgproc"):
+        up = cv2.ximgproc.guidedFilter(guide, up, radius, (eps * 255.0) ** 2)
+    return up >= 0.5
+
+
+def segment(
+    frames: np.ndarray,
+    keypoints_2d: np.ndarray | None,
+    keypoints_valid: np.ndarray | None,
+    cfg: SegmentConfig = SegmentConfig(),
+) -> SegmentResult:
+    """Hand and hand-arm masks for a chunk of frames (see the module docstring)."""
+    if cfg.method != "classical":
+        raise ValueError(f"segment: unknown method {cfg.method!r}; this build has 'classical'")
+    frames = np.asarray(frames)
+    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
+        raise ValueError(f"segment: frames must be (n,H,W,3) uint8, got {frames.shape} {frames.dtype}")
+    n, H, W = frames.shape[:3]
+    if keypoints_2d is None or keypoints_valid is None:
+        keypoints_2d = np.full((n, N_JOINTS, 2), np.nan, np.float32)
+        keypoints_valid = np.zeros((n, N_JOINTS), bool)
+    kp2d = np.asarray(keypoints_2d, dtype=np.float64)
+    kval = np.asarray(keypoints_valid, dtype=bool) & np.isfinite(kp2d).all(-1)
+
+    s = min(1.0, cfg.work_max_side / max(H, W))
+    ws = (max(1, int(round(W * s))), max(1, int(round(H * s))))
+    small = [cv2.resize(f, ws, interpolation=cv2.INTER_AREA) if s < 1 else f for f in frames]
+    ycc = [to_ycrcb(f) for f in small]
+    bgr = [cv2.cvtColor(f, cv2.COLOR_RGB2BGR) for f in small]
+    blank = np.array([float(y[..., 0].std()) < cfg.blank_std for y in ycc], bool)
+
+    kps: list[_KpFrame | None] = []
+    for i in range(n):
+        pts = kp2d[i] * s
+        if blank[i] or not _usable(pts, kval[i], ycc[i].shape[:2], cfg):
+            kps.append(None)
+            continue
+        scale = _hand_scale(pts, kval[i])
+        kps.append(_KpFrame(np.nan_to_num(pts), kval[i].copy(), scale, _forearm_dir(pts, kval[i])))
+
+    seeds = [
+        _draw_skeleton(y.shape[:2], k.pts, k.valid, int(round(0.08 * k.scale)), 0.7) if k is not None else None
+        for y, k in zip(ycc, kps)
+    ]
+    model = _fit_skin([y for y, b in zip(ycc, blank) if not b] or ycc, [sd for sd, b in zip(seeds, blank) if not b] or seeds)
+
+    handarm, hand = [], []
+    for i in range(n):
+        p = model.prob(ycc[i])
+        if blank[i]:
+            e = np.zeros(p.shape, bool)
+            handarm.append(e), hand.append(e)
+        elif kps[i] is not None:
+            a, b = _segment_kp(bgr[i], p, kps[i], cfg)
+            handarm.append(a), hand.append(b)
+        else:
+            a, b = _segment_nokp(bgr[i], ycc[i], p, cfg)
+            handarm.append(a), hand.append(b)
+
+    # Temporal blending of soft masks with warped neighbours (hand and hand-arm alike).
+    wt = cfg.temporal_weight
+    prev_A = [None] + [_kp_transform(kps[i - 1], kps[i]) for i in range(1, n)]  # i-1 -> i
+    next_A = [_kp_transform(kps[i + 1], kps[i]) for i in range(n - 1)] + [None]  # i+1 -> i
+    soft_arm, soft_hand, stability = [], [], np.full(n, _UNKNOWN_STABILITY, np.float32)
+    for i in range(n):
+        acc_a = handarm[i].astype(np.float32)
+        acc_h = hand[i].astype(np.float32)
+        if wt > 0 and not blank[i]:
+            acc_a, acc_h = acc_a * (1 - 2 * wt), acc_h * (1 - 2 * wt)
+            ious = []
+            for j, A in ((i - 1, prev_A[i]), (i + 1, next_A[i])):
+                if 0 <= j < n and not blank[j]:
+                    wa = _warp(handarm[j].astype(np.float32), A)
+                    wh = _warp(hand[j].astype(np.float32), A)
+                    ious.append(_iou(handarm[i], wa >= 0.5))
+                else:  # no neighbour: it votes like this frame
+                    wa, wh = handarm[i].astype(np.float32), hand[i].astype(np.float32)
+                acc_a += wt * wa
+                acc_h += wt * wh
+            stability[i] = float(np.mean(ious)) if ious else _UNKNOWN_STABILITY
+        soft_arm.append(cv2.GaussianBlur(acc_a, (3, 3), 0))
+        soft_hand.append(cv2.GaussianBlur(acc_h, (3, 3), 0))
+
+    radius = max(2, int(np.ceil(2.0 / s)))
+    out_hand = np.zeros((n, H, W), bool)
+    out_arm = np.zeros((n, H, W), bool)
+    conf = np.zeros(n, np.float32)
+    status = np.full(n, Reason.OK, STATUS_DTYPE)
+    min_px = cfg.min_area_frac * H * W
+    for i in range(n):
+        if blank[i]:
+            status[i] = Reason.BLANK_FRAME
+            continue
+        arm_full = _upsample(soft_arm[i], frames[i], radius, cfg.guided_eps)
+        hand_full = _upsample(soft_hand[i], frames[i], radius, cfg.guided_eps) & arm_full
+        if hand_full.sum() < min_px:
+            status[i] = Reason.EMPTY_MASK
+            continue
+        out_arm[i], out_hand[i] = arm_full, hand_full
+        arm_small = soft_arm[i] >= 0.5
+        hand_small = soft_hand[i] >= 0.5
+        skin = float(prior_rule(ycc[i])[hand_small].mean()) if hand_small.any() else 0.0
+        if kps[i] is not None:
+            k = kps[i]
+            grown = cv2.dilate(arm_small.astype(np.uint8), _disk(2)).astype(bool)
+            h, w = arm_small.shape
+            pts = np.round(k.pts[k.valid]).astype(int)
+            inside = (pts[:, 0] >= 0) & (pts[:, 0] < w) & (pts[:, 1] >= 0) & (pts[:, 1] < h)
+            pts = pts[inside]
+            cover = float(grown[pts[:, 1], pts[:, 0]].mean()) if len(pts) else 0.0
+            conf[i] = 0.3 * cover + 0.45 * skin + 0.25 * stability[i]
+        else:
+            conf[i] = cfg.no_keypoint_factor * (0.5 * skin + 0.5 * stability[i])
+        if conf[i] < cfg.min_confidence:
+            status[i] = Reason.LOW_CONFIDENCE
+
+    n_kp = sum(k is not None for k in kps)
+    if n_kp == n:
+        method = "classical:grabcut+skin"
+    elif n_kp == 0:
+        method = "classical:skin-components+grabcut"
+    else:
+        method = "classical:grabcut+skin|skin-components+grabcut"
+    return SegmentResult(out_hand, out_arm, conf, status, method)

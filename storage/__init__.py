@@ -1,0 +1,25 @@
+"""storage: the Zarr v3 layout, chunk I/O, provenance and the rejection ledger.
+
+One package owns paths and schemas (``storage.layout``); nothing else builds store
+paths by hand. The store opens with plain ``zarr``, ``dask.array`` and ``xarray``.
+"""
+
+from storage.layout import ARRAYS, SCOPES, STAGES, Unit, chunk_ranges
+from storage.ledger import read_ledger, status_counts, write_ledger_table
+from storage.provenance import ChunkRecord, is_current, provenance_key, read_records, write_records
+from storage.store import (
+    StoreError,
+    create_or_open_store,
+    create_unit,
+    digest,
+    open_store,
+    read_chunk,
+    write_chunk,
+)
+
+__all__ = [
+    "ARRAYS", "SCOPES", "STAGES", "Unit", "chunk_ranges", "read_ledger", "status_counts",
+    "write_ledger_table", "ChunkRecord", "is_current", "provenance_key", "read_records",
+    "write_records", "StoreError", "create_or_open_store", "create_unit", "digest",
+    "open_store", "read_chunk", "write_chunk",
+]

@@ -1,0 +1,177 @@
+"""The one owner of the Zarr v3 layout: group paths, array schemas, chunking.
+
+Nothing else in the project builds a store path by hand. The tree is::
+
+    <store>.zarr/                         attrs: schema, frames_per_chunk, clips, runs
+      clips/<clip>/source/                ingest: frames, camera, keypoints, object, gt_*
+      clips/<clip>/segment/               hand_mask, handarm_mask, confidence
+      clips/<clip>/restore_background/<scope>/   background (scope = hand | hand_arm)
+      clips/<clip>/embodiments/<emb>/<stage>/    retarget, render, composite, harmonize, qc
+      ledger/                             the rejection ledger as table columns
+
+Every stage group ("unit") holds a ``status`` array (one int16 per frame, codes in
+``handedit.reasons``) and, in its attributes, a provenance record per chunk.
+
+Chunking enforces one writer per chunk: a task always covers whole chunks of
+``frames_per_chunk`` (F) frames. Image arrays store one frame per inner chunk, F frames
+per shard; small per-frame arrays store F frames per chunk. So two tasks never touch the
+same file, and only the flow driver creates/resizes arrays or writes attributes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+SCHEMA_VERSION = 1
+STORE_SUFFIX = ".zarr"
+SCOPES = ("hand", "hand_arm")
+
+# Stage -> level: which address fields identify one unit of that stage.
+STAGE_LEVEL: dict[str, str] = {
+    "ingest": "clip",
+    "segment": "clip",
+    "restore_background": "scope",
+    "retarget": "embodiment",
+    "render": "embodiment",
+    "composite": "embodiment",
+    "harmonize": "embodiment",
+    "qc": "embodiment",
+}
+STAGES: tuple[str, ...] = tuple(STAGE_LEVEL)
+
+
+@dataclass(frozen=True, order=True)
+class Unit:
+    """One stage applied to one clip (and scope or embodiment): one Zarr group."""
+
+    stage: str
+    clip: str
+    scope: str | None = None
+    embodiment: str | None = None
+
+    def __post_init__(self) -> None:
+        level = STAGE_LEVEL.get(self.stage)
+        if level is None:
+            raise ValueError(f"unknown stage {self.stage!r}; stages are {', '.join(STAGES)}")
+        if (level == "scope") != (self.scope is not None) or (level == "embodiment") != (self.embodiment is not None):
+            raise ValueError(f"stage {self.stage!r} is addressed per {level}: got {self}")
+        if self.scope is not None and self.scope not in SCOPES:
+            raise ValueError(f"unknown scope {self.scope!r}; scopes are {SCOPES}")
+
+    @property
+    def path(self) -> str:
+        c = clip_path(self.clip)
+        if self.stage == "ingest":
+            return f"{c}/source"
+        if self.scope is not None:
+            return f"{c}/{self.stage}/{self.scope}"
+        if self.embodiment is not None:
+            return f"{c}/embodiments/{self.embodiment}/{self.stage}"
+        return f"{c}/{self.stage}"
+
+    @property
+    def label(self) -> str:
+        extra = self.scope or self.embodiment
+        return f"{self.stage}[{self.clip}{'/' + extra if extra else ''}]"
+
+
+def clip_path(clip: str) -> str:
+    if not clip or "/" in clip or clip.startswith("."):
+        raise ValueError(f"invalid clip id {clip!r}: use letters, digits, '-', '_' (no '/')")
+    return f"clips/{clip}"
+
+
+LEDGER_PATH = "ledger"
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """Schema of one per-frame array; ``tail`` may name sizes ('H', 'W', 'dof')."""
+
+    name: str
+    tail: tuple[int | str, ...]
+    dtype: str
+    dims: tuple[str, ...]  # dimension names after 'frame' (xarray needs them)
+    image: bool = False  # compressed with Blosc zstd+bitshuffle, 1 frame per inner chunk
+    when: str | None = None  # only when the source has this: 'object' or 'gt'
+    fill: float | int | bool = 0
+
+    def shape(self, n_frames: int, sizes: dict[str, int]) -> tuple[int, ...]:
+        return (n_frames, *(sizes[d] if isinstance(d, str) else d for d in self.tail))
+
+
+_STATUS = ArraySpec("status", (), "int16", ())
+_MASK = ("H", "W")
+_MASK_DIMS = ("y", "x")
+
+ARRAYS: dict[str, tuple[ArraySpec, ...]] = {
+    "ingest": (
+        ArraySpec("frames", ("H", "W", 3), "uint8", ("y", "x", "rgb"), image=True),
+        ArraySpec("world_from_camera", (4, 4), "float64", ("row", "col")),
+        ArraySpec("keypoints", (21, 3), "float32", ("joint", "xyz")),
+        ArraySpec("keypoints_valid", (21,), "bool", ("joint",), fill=False),
+        ArraySpec("object_mask", _MASK, "bool", _MASK_DIMS, image=True, when="object", fill=False),
+        ArraySpec("object_pose", (4, 4), "float64", ("row", "col"), when="object"),
+        ArraySpec("gt_hand_mask", _MASK, "bool", _MASK_DIMS, image=True, when="gt", fill=False),
+        ArraySpec("gt_handarm_mask", _MASK, "bool", _MASK_DIMS, image=True, when="gt", fill=False),
+        ArraySpec("gt_background", ("H", "W", 3), "uint8", ("y", "x", "rgb"), image=True, when="gt"),
+        _STATUS,
+    ),
+    "segment": (
+        ArraySpec("hand_mask", _MASK, "bool", _MASK_DIMS, image=True, fill=False),
+        ArraySpec("handarm_mask", _MASK, "bool", _MASK_DIMS, image=True, fill=False),
+        ArraySpec("confidence", (), "float32", ()),
+        _STATUS,
+    ),
+    "restore_background": (
+        ArraySpec("background", ("H", "W", 3), "uint8", ("y", "x", "rgb"), image=True),
+        ArraySpec("filled_from_video", (), "float32", ()),
+        _STATUS,
+    ),
+    "retarget": (
+        ArraySpec("qpos", ("dof",), "float32", ("dof",)),
+        ArraySpec("root_pose", (4, 4), "float64", ("row", "col")),
+        ArraySpec("fingertip_error_mm", (), "float32", ()),
+        ArraySpec("wrist_error_mm", (), "float32", ()),
+        _STATUS,
+    ),
+    "render": (
+        ArraySpec("rgba", ("H", "W", 4), "uint8", ("y", "x", "rgba"), image=True),
+        ArraySpec("depth", _MASK, "float32", _MASK_DIMS, image=True),
+        _STATUS,
+    ),
+    "composite": (
+        ArraySpec("image", ("H", "W", 3), "uint8", ("y", "x", "rgb"), image=True),
+        ArraySpec("robot_mask", _MASK, "bool", _MASK_DIMS, image=True, fill=False),
+        _STATUS,
+    ),
+    "harmonize": (
+        ArraySpec("image", ("H", "W", 3), "uint8", ("y", "x", "rgb"), image=True),
+        _STATUS,
+    ),
+    "qc": (_STATUS,),
+}
+
+# Which mask of the segment stage a scope uses.
+SCOPE_MASK = {"hand": "hand_mask", "hand_arm": "handarm_mask"}
+
+LEDGER_COLUMNS: tuple[tuple[str, str], ...] = (
+    ("stage", "str"),
+    ("clip", "str"),
+    ("scope", "str"),
+    ("embodiment", "str"),
+    ("frame", "int32"),
+    ("reason", "int16"),
+    ("reason_name", "str"),
+    ("detail", "str"),
+)
+
+
+def arrays_for(stage: str, has_object: bool, has_gt: bool) -> tuple[ArraySpec, ...]:
+    flags = {"object": has_object, "gt": has_gt, None: True}
+    return tuple(a for a in ARRAYS[stage] if flags[a.when])
+
+
+def chunk_ranges(n_frames: int, frames_per_chunk: int) -> list[tuple[int, int]]:
+    """Frame ranges of the chunks of a clip: the unit of one task and of one writer."""
+    return [(s, min(s + frames_per_chunk, n_frames)) for s in range(0, n_frames, frames_per_chunk)]

@@ -1,0 +1,188 @@
+"""Opening the store, creating unit arrays (driver only), chunk reads and writes (tasks).
+
+Concurrency contract (measured on this stack: two writers in one chunk, or concurrent
+attribute updates, silently lose data):
+- ``create_unit`` / ``set_attrs`` / provenance writes: the flow driver only.
+- ``write_chunk``: a task, for whole chunks it owns (see ``storage.layout``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+import zarr
+from zarr.codecs import BloscCodec, BloscShuffle
+
+from storage.layout import ARRAYS, SCHEMA_VERSION, ArraySpec, Unit, arrays_for
+
+IMAGE_CODEC = BloscCodec(cname="zstd", clevel=3, shuffle=BloscShuffle.bitshuffle)
+
+
+class StoreError(RuntimeError):
+    """A store that cannot be opened or does not match this code's schema."""
+
+
+def jsonable(obj: Any) -> Any:
+    """JSON-safe copy: numpy scalars/arrays to Python, NaN/inf to None, paths to str."""
+    if isinstance(obj, Mapping):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple, set)):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return jsonable(obj.tolist())
+    if isinstance(obj, (np.bool_, bool)):
+        return bool(obj)
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        f = float(obj)
+        return f if math.isfinite(f) else None
+    if isinstance(obj, Path):
+        return str(obj)
+    if obj is None or isinstance(obj, (str, int)):
+        return obj
+    if hasattr(obj, "model_dump"):
+        return jsonable(obj.model_dump(mode="json"))
+    return str(obj)
+
+
+def now_iso() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def open_store(path: str | Path, mode: str = "r") -> zarr.Group:
+    """Open an existing store (``mode='r'`` or ``'r+'``) after checking its schema."""
+    path = Path(path)
+    if not (path / "zarr.json").exists():
+        raise StoreError(f"{path} is not a handedit store (no zarr.json); run `handedit curate --out DIR` to make one")
+    root = zarr.open_group(str(path), mode=mode)
+    version = root.attrs.get("schema_version")
+    if version != SCHEMA_VERSION:
+        raise StoreError(f"{path} has schema {version}, this code reads schema {SCHEMA_VERSION}; re-curate into a new store")
+    return root
+
+
+def create_or_open_store(path: str | Path, frames_per_chunk: int, code_version: str) -> zarr.Group:
+    """Driver: open the store, creating it on first use. Chunking is fixed at creation."""
+    path = Path(path)
+    if (path / "zarr.json").exists():
+        root = open_store(path, mode="r+")
+        stored = root.attrs.get("frames_per_chunk")
+        if stored != frames_per_chunk:
+            raise StoreError(
+                f"{path} was created with frames_per_chunk={stored}; pass the same value "
+                f"(or a new --out) - chunk boundaries are what keeps one writer per chunk"
+            )
+        return root
+    path.parent.mkdir(parents=True, exist_ok=True)
+    root = zarr.open_group(str(path), mode="w")
+    root.attrs.update(
+        jsonable(
+            {
+                "schema_version": SCHEMA_VERSION,
+                "frames_per_chunk": frames_per_chunk,
+                "created": now_iso(),
+                "created_by": code_version,
+                "clips": {},
+                "runs": [],
+            }
+        )
+    )
+    return root
+
+
+def create_unit(
+    root: zarr.Group,
+    unit: Unit,
+    n_frames: int,
+    sizes: dict[str, int],
+    frames_per_chunk: int,
+    has_object: bool = False,
+    has_gt: bool = False,
+    attrs: dict | None = None,
+) -> zarr.Group:
+    """Driver: create (or reuse, when the shape matches) a unit's group and arrays."""
+    group = root.require_group(unit.path)
+    for spec in arrays_for(unit.stage, has_object, has_gt):
+        shape = spec.shape(n_frames, sizes)
+        if spec.name in group:
+            existing = group[spec.name]
+            if tuple(existing.shape) == shape and str(existing.dtype) == spec.dtype:
+                continue
+            del group[spec.name]  # shape changed (e.g. new embodiment DoF): recreate
+        _create_array(group, spec, shape, frames_per_chunk)
+    if attrs:
+        group.attrs.update(jsonable(attrs))
+    return group
+
+
+def _create_array(group: zarr.Group, spec: ArraySpec, shape: tuple[int, ...], f: int) -> None:
+    tail = shape[1:]
+    dims = ("frame", *spec.dims)
+    if spec.image:
+        group.create_array(
+            spec.name, shape=shape, dtype=spec.dtype, chunks=(1, *tail), shards=(f, *tail),
+            compressors=IMAGE_CODEC, fill_value=spec.fill, dimension_names=dims,
+        )
+    else:
+        group.create_array(
+            spec.name, shape=shape, dtype=spec.dtype, chunks=(f, *tail),
+            fill_value=spec.fill, dimension_names=dims,
+        )
+
+
+def digest(array: np.ndarray) -> str:
+    """Content fingerprint of an array (shape, dtype and bytes)."""
+    a = np.ascontiguousarray(array)
+    h = hashlib.blake2b(digest_size=16)
+    h.update(f"{a.dtype.str}{a.shape}".encode())
+    h.update(memoryview(a).cast("B"))
+    return h.hexdigest()
+
+
+def write_chunk(root: zarr.Group, unit: Unit, start: int, arrays: Mapping[str, np.ndarray]) -> dict[str, str]:
+    """Task: write frames [start, start+n) of each named array; return their digests.
+
+    The caller owns this chunk range (chunk-aligned), so this is the only writer.
+    """
+    group = root[unit.path]
+    digests: dict[str, str] = {}
+    for name, value in arrays.items():
+        if name not in group:
+            raise KeyError(f"{unit.label} has no array {name!r}; schema: {[a.name for a in ARRAYS[unit.stage]]}")
+        target = group[name]
+        value = np.asarray(value, dtype=target.dtype)
+        stop = start + value.shape[0]
+        if value.shape[1:] != tuple(target.shape[1:]) or stop > target.shape[0]:
+            raise ValueError(f"{unit.label}/{name}: got {value.shape} at {start}, array is {target.shape}")
+        target[start:stop] = value
+        digests[name] = digest(value)
+    return digests
+
+
+def read_chunk(root: zarr.Group, unit: Unit, names: Iterable[str], start: int, stop: int) -> dict[str, np.ndarray]:
+    group = root[unit.path]
+    return {name: group[name][start:stop] for name in names}
+
+
+def has_array(root: zarr.Group, unit: Unit, name: str) -> bool:
+    return unit.path in root and name in root[unit.path]
+
+
+def unit_attrs(root: zarr.Group, unit: Unit) -> dict:
+    return dict(root[unit.path].attrs) if unit.path in root else {}
+
+
+def set_attrs(root: zarr.Group, path: str, values: dict) -> None:
+    """Driver: update attributes of a group (JSON-safe)."""
+    root.require_group(path).attrs.update(jsonable(values))
+
+
+def dumps(obj: Any) -> str:
+    return json.dumps(jsonable(obj), sort_keys=True, separators=(",", ":"))

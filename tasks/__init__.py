@@ -1,0 +1,31 @@
+"""Thin Prefect tasks, one module per stage: read inputs, call handedit, write the chunk.
+
+Each returns a provenance record to the flow driver. Retries live here (tasks._options);
+the math lives in ``handedit``.
+"""
+
+from tasks import composite as _composite
+from tasks import harmonize as _harmonize
+from tasks import ingest as _ingest
+from tasks import qc as _qc
+from tasks import render as _render
+from tasks import restore_background as _restore_background
+from tasks import retarget as _retarget
+from tasks import segment as _segment
+
+_MODULES = {
+    "ingest": _ingest,
+    "segment": _segment,
+    "restore_background": _restore_background,
+    "retarget": _retarget,
+    "render": _render,
+    "composite": _composite,
+    "harmonize": _harmonize,
+    "qc": _qc,
+}
+# stage -> Prefect task (what the flow submits)
+STAGE_TASKS = {stage: getattr(module, stage) for stage, module in _MODULES.items()}
+# stage -> the task's body without Prefect (what bench/curate_overhead.py loops over)
+STAGE_BODIES = {stage: module.body for stage, module in _MODULES.items()}
+
+__all__ = ["STAGE_TASKS", "STAGE_BODIES"]

@@ -1,0 +1,160 @@
+"""What every stage task shares: the job it receives, the retry policy, the record it returns.
+
+A task handles one chunk of frames (never one frame: a Prefect task on Dask costs
+~100 ms of orchestration). It opens the store, reads its inputs, calls the domain
+function, writes its own chunk, and returns a provenance record to the driver, which
+is the only process that writes attributes.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from functools import lru_cache
+from typing import Callable
+
+import numpy as np
+import zarr
+
+from handedit.reasons import Reason
+from storage import ChunkRecord, Unit, write_chunk
+from storage.store import now_iso
+
+# Failures worth another attempt: I/O hiccups, lost connections, resource pressure.
+TRANSIENT = (OSError, TimeoutError, ConnectionError, MemoryError)
+RETRIES = 2
+RETRY_DELAYS = [1.0, 5.0]
+
+
+class TransientError(RuntimeError):
+    """Raise to ask for a retry explicitly."""
+
+
+class InjectedFault(RuntimeError):
+    """Raised where ``CurateConfig.inject_faults`` asks for it (drills and tests)."""
+
+
+def is_transient(exc: BaseException) -> bool:
+    return isinstance(exc, (TransientError, *TRANSIENT)) and not isinstance(exc, (FileNotFoundError, PermissionError))
+
+
+def retry_transient(task, task_run, state) -> bool:
+    """Prefect retry condition: retry I/O-like failures, not deterministic data errors."""
+    exc = state.data if isinstance(state.data, BaseException) else None
+    return exc is not None and is_transient(exc)
+
+
+@dataclass(frozen=True)
+class ChunkJob:
+    """Everything a task needs, small and picklable: no pixels travel with it."""
+
+    store: str
+    unit: Unit
+    chunk: int
+    start: int
+    stop: int
+    key: str
+    version: int
+    params: dict
+    inputs: dict[str, str]
+    code_version: str
+    context: dict = field(default_factory=dict)
+    fault: bool = False
+
+    @property
+    def n(self) -> int:
+        return self.stop - self.start
+
+
+@dataclass
+class StageOutput:
+    """What a stage body hands back: arrays for its chunk, per-frame status, details."""
+
+    arrays: dict[str, np.ndarray]
+    status: np.ndarray
+    method: str = ""
+    details: dict[int, str] = field(default_factory=dict)  # chunk-relative frame -> text
+    extra: dict = field(default_factory=dict)
+
+
+@lru_cache(maxsize=8)
+def open_root(store: str) -> zarr.Group:
+    """One store handle per worker process (reads are safe to share)."""
+    return zarr.open_group(store, mode="r+")
+
+
+def attempt_number() -> int:
+    try:
+        from prefect.runtime import task_run
+
+        return int(task_run.run_count or 1)
+    except Exception:  # outside a Prefect run (bench, bare loop)
+        return 1
+
+
+def execute(job: ChunkJob, body: Callable[[zarr.Group, ChunkJob], StageOutput]) -> dict:
+    """Run a stage body on one chunk, write its outputs, return its provenance record."""
+    started, t0 = now_iso(), time.perf_counter()
+    if job.fault:
+        raise InjectedFault(f"fault injected into {job.unit.label} chunk {job.chunk}")
+    root = open_root(job.store)
+    out = body(root, job)
+    status = np.asarray(out.status, dtype=np.int16)
+    digests = write_chunk(root, job.unit, job.start, {**out.arrays, "status": status})
+    return make_record(job, status, digests, out.method, out.details, out.extra, started, time.perf_counter() - t0)
+
+
+def make_record(
+    job: ChunkJob,
+    status: np.ndarray,
+    digests: dict[str, str],
+    method: str,
+    details: dict[int, str],
+    extra: dict,
+    started: str,
+    seconds: float,
+    outcome: str = "ok",
+    error: str | None = None,
+) -> dict:
+    codes, counts = np.unique(status, return_counts=True)
+    rejections = [
+        {
+            "frame": job.start + int(i),
+            "reason": int(status[i]),
+            "detail": details.get(int(i), error or Reason(int(status[i])).name.lower().replace("_", " ")),
+        }
+        for i in np.flatnonzero(status >= 100)
+    ]
+    return ChunkRecord(
+        stage=job.unit.stage,
+        chunk=job.chunk,
+        start=job.start,
+        stop=job.stop,
+        key=job.key,
+        version=job.version,
+        params=job.params,
+        inputs=job.inputs,
+        outputs=digests,
+        method=method,
+        outcome=outcome,
+        error=error,
+        rejections=rejections,
+        counts={str(int(c)): int(n) for c, n in zip(codes, counts)},
+        code_version=job.code_version,
+        attempts=attempt_number(),
+        started=started,
+        seconds=round(seconds, 4),
+        extra=extra,
+    ).to_json()
+
+
+def failure_record(job: ChunkJob, root: zarr.Group, reason: Reason, error: str, attempts: int) -> dict:
+    """Driver side: a chunk whose task failed for good. Its frames get ``reason``.
+
+    The failed task is no longer running, so the driver is the chunk's only writer.
+    """
+    status = np.full(job.n, int(reason), dtype=np.int16)
+    digests = write_chunk(root, job.unit, job.start, {"status": status})
+    record = make_record(job, status, digests, "", {}, {}, now_iso(), 0.0, outcome="error", error=error)
+    record["attempts"] = attempts
+    return record

@@ -1,0 +1,33 @@
+"""ingest: copy one chunk of a source clip (frames, camera, keypoints, object, GT) into the store."""
+
+from __future__ import annotations
+
+import zarr
+from prefect import task
+
+from handedit.sources import frame_status, open_source_json
+from tasks._options import stage_options
+from tasks.common import ChunkJob, StageOutput, execute
+
+
+def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
+    source = open_source_json(job.context["source"])
+    chunk = source.read(job.start, job.stop)
+    arrays = {
+        "frames": chunk.frames,
+        "world_from_camera": chunk.world_from_camera,
+        "keypoints": chunk.keypoints,
+        "keypoints_valid": chunk.keypoints_valid,
+    }
+    if job.context.get("has_object"):
+        arrays["object_mask"] = chunk.object_mask
+        arrays["object_pose"] = chunk.object_pose
+    if job.context.get("has_gt"):
+        arrays.update({f"gt_{k}": v for k, v in chunk.gt.items()})
+    status, details = frame_status(chunk)
+    return StageOutput(arrays, status, method=type(source).__name__, details=details)
+
+
+@task(**stage_options("ingest"))
+def ingest(job: ChunkJob) -> dict:
+    return execute(job, body)

@@ -1,0 +1,44 @@
+"""restore_background: the scene behind the hand (or hand-arm) for one chunk.
+
+Reads a window of frames around the chunk so the domain function can propagate real
+background pixels from neighbouring frames before inpainting the rest.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import zarr
+from prefect import task
+
+from handedit.reasons import Reason, combine, gate
+from handedit.vision.restore_background import RestoreConfig, restore_background as restore
+from storage import Unit, read_chunk
+from storage.layout import SCOPE_MASK
+from tasks._options import stage_options
+from tasks.common import ChunkJob, StageOutput, execute
+
+
+def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
+    lo, hi = job.context["window"]
+    clip, mask_name = job.unit.clip, SCOPE_MASK[job.unit.scope]
+    src = read_chunk(root, Unit("ingest", clip), ["frames"], lo, hi)
+    seg = read_chunk(root, Unit("segment", clip), [mask_name, "status"], lo, hi)
+    usable = gate(seg["status"])  # frames whose masks can be trusted, as sources or targets
+    window = np.flatnonzero(usable)
+    in_chunk = np.arange(job.start - lo, job.stop - lo)
+    ready = usable[in_chunk]
+    background = np.zeros((job.n, *src["frames"].shape[1:]), np.uint8)
+    filled = np.zeros(job.n, np.float32)
+    own = np.full(job.n, int(Reason.UPSTREAM), np.int16)
+    method = ""
+    if ready.any():
+        targets = np.searchsorted(window, in_chunk[ready])
+        result = restore(src["frames"][window], seg[mask_name][window], targets, RestoreConfig(**job.params))
+        background[ready], filled[ready], own[ready] = result.background, result.filled_from_video, result.status
+        method = result.method
+    return StageOutput({"background": background, "filled_from_video": filled}, combine(own, ready), method=method)
+
+
+@task(**stage_options("restore_background"))
+def restore_background(job: ChunkJob) -> dict:
+    return execute(job, body)

@@ -1,0 +1,63 @@
+"""Shared fixtures: where ../shared lives, and test isolation for Prefect and EGL."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import pytest
+
+# Before Prefect is imported anywhere: an isolated home, no telemetry, quiet logs.
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+os.environ.setdefault("PREFECT_HOME", tempfile.mkdtemp(prefix="handedit-prefect-"))
+os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "error")
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = Path(os.environ.get("HANDEDIT_SHARED", REPO.parent / "shared"))
+
+
+def _need(path: Path, what: str) -> Path:
+    if not path.exists():
+        pytest.fail(
+            f"{what} not found at {path}. Tests need the project's shared/ folder beside the repo "
+            f"(or HANDEDIT_SHARED=/path/to/shared).",
+            pytrace=False,
+        )
+    return path
+
+
+@pytest.fixture(scope="session")
+def shared_dir() -> Path:
+    return _need(SHARED, "shared/ folder")
+
+
+@pytest.fixture(scope="session")
+def robots_dir(shared_dir: Path) -> Path:
+    return _need(shared_dir / "assets" / "robots", "dex-urdf robot assets")
+
+
+@pytest.fixture(scope="session")
+def real_video(shared_dir: Path) -> Path:
+    return _need(shared_dir / "data" / "real-hand-video" / "human_hand_video.mp4", "real hand video")
+
+
+@pytest.fixture(scope="session")
+def prefect_api():
+    """A real Prefect API server on 127.0.0.1 for the whole session."""
+    from prefect.testing.utilities import prefect_test_harness
+
+    with prefect_test_harness(server_startup_timeout=180):
+        yield
+
+
+@pytest.fixture(scope="session")
+def dask_cluster():
+    """Two worker processes with one thread each, bound to 127.0.0.1."""
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address="127.0.0.1:0", memory_limit="4GiB") as cluster:
+        yield cluster

@@ -1,0 +1,127 @@
+"""Roster, asset resolution and URDF loading errors."""
+
+from __future__ import annotations
+
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from handedit.embodiments import (
+    AssetsMissing,
+    BrokenUrdf,
+    EmbodimentError,
+    MissingMesh,
+    UrdfNotFound,
+    describe_embodiment,
+    get_embodiment,
+    list_embodiments,
+    load_urdf,
+    resolve_asset,
+    resolve_urdf,
+)
+from handedit.embodiments.kinematics import get_kinematics
+from handedit.keypoints import FINGERTIPS
+
+HAND_IDS = ["allegro", "shadow", "leap", "inspire", "ability", "schunk_svh"]
+
+
+@pytest.fixture
+def assets(monkeypatch, robots_dir: Path) -> Path:
+    monkeypatch.setenv("HANDEDIT_ASSET_DIRS", str(robots_dir))
+    return robots_dir
+
+
+def test_roster_ids_and_fields():
+    ids = [e.id for e in list_embodiments()]
+    assert set(HAND_IDS) <= set(ids) and len(ids) == len(set(ids))
+    assert get_embodiment("inspire").name == "RH56DFX"
+    assert get_embodiment("schunk_svh").name == "Schunk SVH"
+    for e in list_embodiments():
+        assert e.track == "hand" and e.arm is None
+        assert e.description.startswith("A ") and e.description.endswith(".")
+        for pattern in e.materials:
+            re.compile(pattern)
+
+
+def test_unknown_id_lists_known():
+    with pytest.raises(EmbodimentError, match="known ids: .*allegro"):
+        get_embodiment("not_a_robot")
+
+
+def test_allegro_resolves_from_pypi_package(monkeypatch):
+    monkeypatch.delenv("HANDEDIT_ASSET_DIRS", raising=False)
+    p = resolve_urdf(get_embodiment("allegro"))
+    assert p.name == "allegro_right_hand.urdf" and p.is_file()
+    assert "example-robot-data" in str(p)
+    with pytest.raises(AssetsMissing, match=r"hands/shadow_hand/shadow_hand_right_glb\.urdf.*HANDEDIT_ASSET_DIRS"):
+        resolve_urdf(get_embodiment("shadow"))
+
+
+@pytest.mark.parametrize("emb_id", HAND_IDS)
+def test_resolve_from_asset_dir(assets, emb_id):
+    emb = get_embodiment(emb_id)
+    ra = resolve_asset(emb)
+    assert ra.path.is_relative_to(assets)
+    kin = get_kinematics(ra.path)
+    links = set(kin.link_names)
+    kps = ra.asset.keypoints
+    assert {k.link for k in kps} <= links
+    assert sum(k.mano == 0 for k in kps) == 1
+    assert {k.mano for k in kps} & set(FINGERTIPS)
+    assert {n for n, _ in ra.asset.locked_joints} <= set(kin.joint_names)
+    # every link gets a colour consistent with the description
+    assert all(emb.link_color(l) is not None for l in links)
+
+
+@pytest.mark.parametrize("emb_id", HAND_IDS)
+def test_wrist_from_root_matches_calibration(assets, emb_id):
+    from handedit.retarget.palm import calibrate_wrist_from_root
+
+    T = resolve_asset(get_embodiment(emb_id)).asset.wrist_from_root_matrix
+    np.testing.assert_allclose(T, calibrate_wrist_from_root(emb_id), atol=2e-4)
+    np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-12)
+
+
+def test_load_urdf_meshes(assets):
+    u = load_urdf(resolve_urdf(get_embodiment("allegro")))
+    assert len(u.scene.geometry) > 0
+    assert load_urdf(resolve_urdf(get_embodiment("allegro"))) is u  # cached
+
+
+def _copy_allegro(robots_dir: Path, tmp_path: Path) -> Path:
+    dst = tmp_path / "robots" / "hands" / "allegro_hand"
+    shutil.copytree(robots_dir / "hands" / "allegro_hand", dst)
+    return dst / "allegro_hand_right_glb.urdf"
+
+
+def test_missing_urdf_names_file(tmp_path):
+    with pytest.raises(UrdfNotFound, match=re.escape(str(tmp_path / "nope.urdf"))):
+        load_urdf(tmp_path / "nope.urdf")
+
+
+def test_broken_xml_names_file(robots_dir, tmp_path):
+    urdf = _copy_allegro(robots_dir, tmp_path)
+    urdf.write_text(urdf.read_text()[:-200])  # truncated XML
+    with pytest.raises(BrokenUrdf, match=re.escape(str(urdf.resolve())) + ".*not valid XML"):
+        load_urdf(urdf)
+
+
+def test_missing_mesh_names_file(robots_dir, tmp_path):
+    urdf = _copy_allegro(robots_dir, tmp_path)
+    meshes = sorted((urdf.parent / "meshes").rglob("*.glb"))
+    victim = meshes[0]
+    victim.unlink()
+    with pytest.raises(MissingMesh, match=re.escape(victim.name)) as ei:
+        load_urdf(urdf)
+    assert str(urdf.resolve()) in str(ei.value) and "meshes/" in str(ei.value)
+
+
+def test_describe_embodiment(assets):
+    track, joints = describe_embodiment("inspire")
+    assert track == "hand" and len(joints) == 6 and joints[0] == "thumb_proximal_yaw_joint"
+    with pytest.raises(EmbodimentError) as ei:
+        describe_embodiment("nope")
+    assert int(ei.value.reason) == 902

@@ -1,0 +1,80 @@
+"""Symbolic (casadi) FK agrees with yourdfpy; limits, mimic joints and the Jacobian."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from handedit.embodiments import get_embodiment, resolve_asset
+from handedit.embodiments.kinematics import get_kinematics
+from handedit.embodiments.urdf import load_urdf
+
+
+def _erd_allegro(monkeypatch) -> Path:
+    monkeypatch.delenv("HANDEDIT_ASSET_DIRS", raising=False)
+    ra = resolve_asset(get_embodiment("allegro"))
+    assert ra.asset.source == "package"
+    return ra.path
+
+
+def _hand_urdfs(robots_dir: Path) -> list[Path]:
+    urdfs = sorted((robots_dir / "hands").glob("*/*.urdf"))
+    assert len(urdfs) == 6
+    return urdfs
+
+
+def _check_fk(path: Path, n: int = 4, seed: int = 0) -> None:
+    kin = get_kinematics(path)
+    urdf = load_urdf(path, load_meshes=False)
+    assert kin.joint_names == list(urdf.actuated_joint_names)
+    rng = np.random.default_rng(seed)
+    for q in kin.random_q(rng, n):
+        assert np.all((q >= kin.lower) & (q <= kin.upper))
+        urdf.update_cfg(q)
+        for link in kin.link_names:
+            np.testing.assert_allclose(
+                kin.fk(q, link), urdf.get_transform(link, urdf.base_link), atol=1e-9, err_msg=f"{path.name}:{link}"
+            )
+
+
+def test_fk_matches_yourdfpy_dex_urdf_hands(robots_dir):
+    for path in _hand_urdfs(robots_dir):
+        _check_fk(path)
+
+
+def test_fk_matches_yourdfpy_example_robot_data_allegro(monkeypatch):
+    _check_fk(_erd_allegro(monkeypatch))
+
+
+def test_limits_and_mimic(robots_dir):
+    kin = get_kinematics(robots_dir / "hands/allegro_hand/allegro_hand_right_glb.urdf")
+    i = kin.joint_names.index("joint_12.0")
+    assert (kin.lower[i], kin.upper[i]) == (0.263, 1.396)
+    assert kin.neutral()[i] == 0.263  # zero pose is outside this joint's limits
+    inspire = get_kinematics(robots_dir / "hands/inspire_hand/inspire_hand_right.urdf")
+    assert inspire.dof == 6 and "index_intermediate_joint" not in inspire.joint_names  # mimic is derived
+    assert np.all(np.isfinite(inspire.lower))
+
+
+def test_jacobian_matches_finite_differences(robots_dir):
+    kin = get_kinematics(robots_dir / "hands/schunk_hand/schunk_svh_hand_right_glb.urdf")
+    q = kin.random_q(np.random.default_rng(3))
+    J = np.asarray(kin.jacobian_function("fftip")(q))
+    assert J.shape == (6, kin.dof)
+    eps = 1e-6
+    T0 = kin.fk(q, "fftip")
+    for i in range(kin.dof):
+        dq = np.zeros(kin.dof)
+        dq[i] = eps
+        T1 = kin.fk(q + dq, "fftip")
+        np.testing.assert_allclose((T1[:3, 3] - T0[:3, 3]) / eps, J[:3, i], atol=1e-5)
+        W = (T1[:3, :3] - T0[:3, :3]) / eps @ T0[:3, :3].T
+        np.testing.assert_allclose([W[2, 1], W[0, 2], W[1, 0]], J[3:, i], atol=1e-5)
+
+
+def test_unknown_link_is_clear(robots_dir):
+    kin = get_kinematics(robots_dir / "hands/leap_hand/leap_hand_right.urdf")
+    with pytest.raises(KeyError, match="not_a_link"):
+        kin.fk_function("not_a_link")

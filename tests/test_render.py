@@ -1,0 +1,243 @@
+"""Robot rendering: geometry agrees with FK and the camera model, depth is metric, renderers are
+reusable, thread-bound and fail loudly on broken assets. Real dex-urdf hands + packaged Allegro."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import site
+import threading
+from pathlib import Path
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+import yourdfpy  # noqa: E402
+
+from handedit.camera import Intrinsics, project  # noqa: E402
+from handedit.render import RobotRenderer, frame_points, get_renderer, rotation_from_euler  # noqa: E402
+from handedit.render.model import joint_limits  # noqa: E402
+
+HANDS = ["allegro", "shadow", "leap", "inspire", "ability", "schunk_svh", "allegro_pkg"]
+W, H = 160, 120
+# Principal point off-centre on purpose: a cx/cy sign or flip error shows up as misplaced links.
+INTR = Intrinsics(fx=120.0, fy=120.0, cx=74.0, cy=64.0, width=W, height=H)
+
+
+def packaged_allegro() -> Path:
+    for sp in site.getsitepackages():
+        p = Path(sp) / "cmeel.prefix/share/example-robot-data/robots/allegro_hand_description/urdf/allegro_right_hand.urdf"
+        if p.is_file():
+            return p
+    pytest.fail("example-robot-data's allegro_right_hand.urdf not found in site-packages")
+
+
+def hand_urdf(robots_dir: Path, key: str) -> Path:
+    if key == "allegro_pkg":
+        return packaged_allegro()
+    manifest = json.loads((robots_dir / "manifest.json").read_text())
+    return robots_dir / manifest[key]["urdf"]
+
+
+def scenario(r: RobotRenderer, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    lo, hi = joint_limits(r.urdf)
+    q = np.random.default_rng(seed).uniform(lo, hi)
+    T = frame_points(r.points(q), rotation_from_euler(0.4, 0.3, 0.2), INTR, fill=0.7)
+    return q, T
+
+
+@pytest.fixture(scope="module", params=HANDS)
+def hand(request, robots_dir):
+    path = hand_urdf(robots_dir, request.param)
+    r = RobotRenderer(path, W, H)
+    q, T = scenario(r)
+    res = r.render(q[None], T[None], INTR)
+    return request.param, path, r, q, T, res
+
+
+def test_hand_list_covers_every_hand_asset(robots_dir):
+    manifest = json.loads((robots_dir / "manifest.json").read_text())
+    hands = {k for k, v in manifest.items() if v["kind"] == "hand"}
+    assert hands == set(HANDS) - {"allegro_pkg"}
+    assert {p.parent.name for p in (robots_dir / "hands").glob("*/*.urdf")} == {
+        Path(manifest[k]["urdf"]).parent.name for k in hands
+    }
+
+
+def test_joint_names_are_yourdfpy_actuated_order(hand):
+    _, path, r, *_ = hand
+    assert r.joint_names == yourdfpy.URDF.load(str(path), load_meshes=False).actuated_joint_names
+
+
+def test_mask_in_image_and_consistent_with_depth(hand):
+    _, _, _, _, _, res = hand
+    assert res.rgba.shape == (1, H, W, 4) and res.rgba.dtype == np.uint8
+    assert res.depth.shape == (1, H, W) and res.depth.dtype == np.float32
+    mask, rgba, depth = res.mask[0], res.rgba[0], res.depth[0]
+    assert mask.sum() > 0.03 * W * H, "robot should fill a good part of the image"
+    border = np.concatenate([mask[0], mask[-1], mask[:, 0], mask[:, -1]])
+    assert not border.any(), "robot must lie fully inside the image"
+    assert set(np.unique(rgba[..., 3])) <= {0, 255}
+    np.testing.assert_array_equal(mask, depth > 0)
+    assert not rgba[~mask][:, :3].any(), "RGB must be black off the robot"
+
+
+def test_geometry_matches_fk_projection_and_depth(hand):
+    """Independent FK (fresh yourdfpy load) composed with root_pose and handedit.camera.project."""
+    _, path, _, q, T, res = hand
+    mask, depth = res.mask[0], res.depth[0]
+    urdf = yourdfpy.URDF.load(str(path), build_scene_graph=True, load_meshes=True)
+    urdf.update_cfg(q)
+    verts_root = urdf.scene.dump(concatenate=True).vertices
+    verts_cam = verts_root @ T[:3, :3].T + T[:3, 3]
+
+    # every visual vertex projects into the silhouette (2 px slack for rasterisation)
+    grown = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    uv = np.round(project(verts_cam, INTR)).astype(int)
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+    assert inside.all()
+    assert grown[uv[:, 1], uv[:, 0]].mean() > 0.995
+
+    # link frames of links with visual geometry land on the robot
+    links = [link.name for link in urdf.robot.links if link.visuals]
+    assert links
+    origins = np.array([(T @ urdf.get_transform(name, urdf.base_link))[:3, 3] for name in links])
+    uv = np.round(project(origins, INTR)).astype(int)
+    grown = cv2.dilate(mask.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+    off = [name for name, (u, v) in zip(links, uv) if not (0 <= u < W and 0 <= v < H and grown[v, u])]
+    assert not off, f"link origins off the rendered robot: {off}"
+
+    # depth is metric z in the camera frame, within the robot's own z range
+    d = depth[mask]
+    z = verts_cam[:, 2]
+    assert d.min() >= z.min() - 1e-3 and d.max() <= z.max() + 1e-3
+    assert d.min() < z.min() + 0.01, "the nearest visible surface is near the nearest vertex"
+
+
+def test_moving_away_shrinks_mask_and_shifts_depth(hand):
+    _, _, r, q, T, res = hand
+    far = T.copy()
+    far[2, 3] += 0.05
+    res_far = r.render(q[None], far[None], INTR)
+    assert res_far.mask.sum() < 0.95 * res.mask.sum()
+    shift = res_far.depth[0][res_far.mask[0]].min() - res.depth[0][res.mask[0]].min()
+    assert abs(shift - 0.05) < 0.004
+
+
+def test_reuse_gives_identical_output(hand):
+    _, _, r, q, T, res = hand
+    q2, T2 = scenario(r, seed=1)
+    other = r.render(q2[None], T2[None], INTR)
+    again = r.render(np.stack([q, q2]), np.stack([T, T2]), INTR)
+    np.testing.assert_array_equal(again.rgba[0], res.rgba[0])
+    np.testing.assert_array_equal(again.depth[0], res.depth[0])
+    np.testing.assert_array_equal(again.rgba[1], other.rgba[0])
+    assert not np.array_equal(other.rgba[0], res.rgba[0])
+
+
+def test_colours_follow_assets(robots_dir):
+    """Allegro (GLB) black with white tips; packaged Allegro's colourless STL links neutral grey;
+    a materials override recolours matching links."""
+    def robot_rgb(r):
+        q, T = scenario(r)
+        res = r.render(q[None], T[None], INTR)
+        return res.rgba[0][res.mask[0]][:, :3].astype(float)
+
+    rgb = robot_rgb(RobotRenderer(hand_urdf(robots_dir, "allegro"), W, H))
+    assert np.median(rgb) < 40, "dex-urdf Allegro is black"
+
+    rgb = robot_rgb(RobotRenderer(packaged_allegro(), W, H))
+    assert np.abs(rgb - rgb.mean(axis=1, keepdims=True)).max() < 12, "colourless meshes render grey"
+    assert np.median(rgb) > 60
+
+    rgb = robot_rgb(RobotRenderer(packaged_allegro(), W, H, materials={r"link_.*": (1.0, 0.0, 0.0, 1.0)}))
+    red = rgb[:, 0] > 2 * rgb[:, 1] + 20
+    assert 0.5 < red.mean() < 1.0, "links recoloured red, base_link keeps its own colour"
+
+
+def test_bad_inputs_are_rejected(robots_dir):
+    r = get_renderer(hand_urdf(robots_dir, "allegro"), W, H)
+    q, T = scenario(r)
+    with pytest.raises(ValueError, match="dof"):
+        r.render(q[None, :-1], T[None], INTR)
+    with pytest.raises(ValueError, match="frames"):
+        r.render(np.stack([q, q]), T[None], INTR)
+    with pytest.raises(ValueError, match="rigid"):
+        r.render(q[None], (T @ np.diag([1.0, 1.0, -1.0, 1.0]))[None], INTR)
+    with pytest.raises(ValueError, match="finite"):
+        r.render(np.full((1, len(q)), np.nan), T[None], INTR)
+    with pytest.raises(ValueError, match="intrinsics"):
+        r.render(q[None], T[None], Intrinsics.default_for(320, 240))
+    with pytest.raises(ValueError, match="RGBA"):
+        RobotRenderer(hand_urdf(robots_dir, "allegro"), W, H, materials={".*": (255, 0, 0, 255)})
+
+
+def test_missing_mesh_names_the_file(robots_dir, tmp_path):
+    src = robots_dir / "hands" / "allegro_hand"
+    dst = tmp_path / "hands" / "allegro_hand"
+    shutil.copytree(src, dst)
+    urdf = yourdfpy.URDF.load(str(dst / "allegro_hand_right_glb.urdf"), load_meshes=False)
+    victim = next(v.geometry.mesh.filename for link in urdf.robot.links for v in link.visuals if v.geometry.mesh)
+    (dst / "allegro_hand_right_glb.urdf").parent.joinpath(victim).unlink()
+    with pytest.raises(FileNotFoundError, match=Path(victim).name.replace(".", r"\.")):
+        RobotRenderer(dst / "allegro_hand_right_glb.urdf", W, H)
+
+
+def test_second_thread_builds_its_own_renderer(robots_dir):
+    path = hand_urdf(robots_dir, "schunk_svh")
+    mine = get_renderer(path, W, H)
+    assert get_renderer(path, W, H) is mine, "cached per thread"
+    q, T = scenario(mine)
+    expected = mine.render(q[None], T[None], INTR)
+    out: dict = {}
+
+    def work():
+        try:
+            with pytest.raises(RuntimeError, match="thread"):
+                mine.render(q[None], T[None], INTR)
+            theirs = get_renderer(path, W, H)
+            out["renderer"] = theirs
+            out["result"] = theirs.render(q[None], T[None], INTR)
+        except BaseException as exc:  # surfaced in the main thread
+            out["error"] = exc
+
+    t = threading.Thread(target=work)
+    t.start()
+    t.join(timeout=60)
+    assert "error" not in out, out.get("error")
+    assert out["renderer"] is not mine
+    np.testing.assert_array_equal(out["result"].rgba, expected.rgba)
+    np.testing.assert_array_equal(out["result"].depth, expected.depth)
+    # the main thread's renderer still works after the other thread's context exists
+    np.testing.assert_array_equal(mine.render(q[None], T[None], INTR).rgba, expected.rgba)
+
+
+def test_decimation_keeps_silhouette_or_fails_clearly(robots_dir):
+    path = hand_urdf(robots_dir, "allegro")
+    full = get_renderer(path, W, H)
+    q, T = scenario(full)
+    try:
+        dec = RobotRenderer(path, W, H, decimate=0.3)
+    except ImportError as exc:
+        assert "fast-simplification" in str(exc) and "decimate=None" in str(exc)
+        return
+    assert dec.n_faces < 0.5 * full.n_faces
+    a = full.render(q[None], T[None], INTR).mask[0]
+    b = dec.render(q[None], T[None], INTR).mask[0]
+    assert (a & b).sum() / (a | b).sum() >= 0.95
+
+
+def test_render_embodiment_uses_roster(robots_dir, monkeypatch):
+    from handedit import embodiments
+    from handedit.render import render_embodiment
+
+    monkeypatch.setenv("HANDEDIT_ASSET_DIRS", str(robots_dir))
+    emb = embodiments.get_embodiment("allegro")
+    r = RobotRenderer(embodiments.resolve_urdf(emb), W, H, materials=emb.materials)
+    q, T = scenario(r)
+    res = render_embodiment("allegro", q[None], T[None], INTR)
+    assert res.mask.sum() > 0.03 * W * H
+    np.testing.assert_array_equal(res.rgba, r.render(q[None], T[None], INTR).rgba)

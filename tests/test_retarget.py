@@ -1,0 +1,204 @@
+"""Position retargeting: own-FK round trips, a human open->fist trajectory, warm vs cold,
+missing keypoints and clear asset errors."""
+
+from __future__ import annotations
+
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from handedit.embodiments import BrokenUrdf, EmbodimentError, MissingMesh
+from handedit.keypoints import JOINT_INDEX
+from handedit.reasons import Reason
+from handedit.retarget import RetargetConfig, get_retargeter, retarget
+
+HAND_IDS = ["allegro", "shadow", "leap", "inspire", "ability", "schunk_svh"]
+CFG = RetargetConfig()
+
+
+@pytest.fixture
+def assets(monkeypatch, robots_dir: Path) -> Path:
+    monkeypatch.setenv("HANDEDIT_ASSET_DIRS", str(robots_dir))
+    return robots_dir
+
+
+def _pose(seed: int) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.random(random_state=seed).as_matrix()
+    T[:3, 3] = [0.05, -0.03, 0.45]
+    return T
+
+
+def _own_fk_keypoints(emb_id: str, n: int, seed: int):
+    """Keypoints made by the robot's own FK along a random in-limit joint path."""
+    rt = get_retargeter(emb_id, CFG)
+    rng = np.random.default_rng(seed)
+    qa, qb = rt.kin.random_q(rng), rt.kin.random_q(rng)
+    for name, v in rt.asset.locked_joints:
+        qa[rt.joint_names.index(name)] = qb[rt.joint_names.index(name)] = v
+    s = np.linspace(0.0, 1.0, n)[:, None]
+    Q = qa * (1 - s) + qb * s
+    T = _pose(seed)
+    kp = np.zeros((n, 21, 3))
+    valid = np.zeros((n, 21), bool)
+    for i in range(n):
+        kp[i, rt.mano_idx] = rt.robot_points(Q[i], T)
+    valid[:, rt.mano_idx] = True
+    if JOINT_INDEX["pinky_mcp"] not in rt.mano_idx:  # palm frame needs a pinky MCP: use the ring's
+        kp[:, 17], valid[:, 17] = kp[:, 13], True
+    return kp, valid, Q, T
+
+
+def human_hand(s: float) -> np.ndarray:
+    """(21,3) parametric right hand in the MANO wrist frame (x palm normal, y radial,
+    z distal), metres; s=0 open, s=1 closed fist."""
+    kp = np.zeros((21, 3))
+    fingers = {  # MCP index: (MCP position, phalanx lengths)
+        5: ((0.0, 0.025, 0.090), (0.045, 0.025, 0.022)),
+        9: ((0.0, 0.003, 0.095), (0.050, 0.030, 0.024)),
+        13: ((0.0, -0.017, 0.088), (0.045, 0.028, 0.022)),
+        17: ((0.0, -0.035, 0.078), (0.035, 0.020, 0.020)),
+    }
+    for i, (base, lens) in fingers.items():
+        p, phi = np.array(base), 0.0
+        kp[i] = p
+        for k, (length, a) in enumerate(zip(lens, (1.45, 1.6, 1.0))):
+            phi += s * a  # flex towards the palm (+x)
+            p = p + length * np.array([np.sin(phi), 0.0, np.cos(phi)])
+            kp[i + k + 1] = p
+    d0 = np.array([0.25, 0.75, 0.6]) / np.linalg.norm([0.25, 0.75, 0.6])
+    d1 = np.array([0.7, -0.6, 0.4]) / np.linalg.norm([0.7, -0.6, 0.4])
+    p = np.array([0.01, 0.02, 0.025])
+    kp[1] = p
+    for k, (length, a) in enumerate(zip((0.045, 0.033, 0.028), (0.5, 0.6, 0.6))):
+        phi = s * a * (k + 1)
+        p = p + length * (np.cos(phi) * d0 + np.sin(phi) * d1)
+        kp[2 + k] = p
+    return kp
+
+
+def _human_trajectory(n: int = 24, seed: int = 5):
+    T = _pose(seed)
+    kp = np.stack([human_hand(s) @ T[:3, :3].T + T[:3, 3] for s in np.linspace(0, 1, n)])
+    return kp, np.ones((n, 21), bool)
+
+
+def _assert_within_limits(emb_id: str, qpos: np.ndarray) -> None:
+    rt = get_retargeter(emb_id, CFG)
+    assert qpos.dtype == np.float32
+    assert np.all(qpos >= rt.kin.lower) and np.all(qpos <= rt.kin.upper)  # exact, no tolerance
+
+
+@pytest.mark.parametrize("emb_id", HAND_IDS)
+def test_own_fk_round_trip(assets, emb_id):
+    kp, valid, Q, T = _own_fk_keypoints(emb_id, n=12, seed=1)
+    r = retarget(kp, valid, emb_id, CFG)
+    assert (r.status == Reason.OK).all(), r.solver_status
+    assert r.fingertip_error_mm.max() < 2.0 and r.wrist_error_mm.max() < 2.0
+    np.testing.assert_allclose(r.root_pose[:, :3, 3], np.broadcast_to(T[:3, 3], (12, 3)), atol=2e-3)
+    np.testing.assert_allclose(r.root_pose[:, :3, :3], np.broadcast_to(T[:3, :3], (12, 3, 3)), atol=2e-2)
+    _assert_within_limits(emb_id, r.qpos)
+    assert r.qpos.shape == (12, len(r.joint_names)) and r.root_pose.dtype == np.float64
+    assert r.status.dtype == np.int16 and r.fingertip_error_mm.dtype == np.float32
+
+
+def test_own_fk_example_robot_data_allegro(monkeypatch):
+    monkeypatch.delenv("HANDEDIT_ASSET_DIRS", raising=False)
+    assert get_retargeter("allegro", CFG).asset.source == "package"
+    kp, valid, Q, T = _own_fk_keypoints("allegro", n=8, seed=2)
+    r = retarget(kp, valid, "allegro", CFG)
+    assert (r.status == Reason.OK).all() and r.fingertip_error_mm.max() < 2.0
+
+
+@pytest.mark.parametrize("emb_id", HAND_IDS)
+def test_human_open_to_fist(assets, emb_id):
+    kp, valid = _human_trajectory()
+    r = retarget(kp, valid, emb_id, CFG)
+    assert (r.status == Reason.OK).all(), (r.status, r.solver_status)
+    assert np.all(np.isfinite(r.fingertip_error_mm)) and r.fingertip_error_mm.max() < CFG.fingertip_reject_mm
+    _assert_within_limits(emb_id, r.qpos)
+    # the robot closes its hand as the human does: tips approach the wrist
+    rt = get_retargeter(emb_id, CFG)
+    d = [np.linalg.norm(rt.robot_points(r.qpos[i], r.root_pose[i])[rt.tip_rows] - r.root_pose[i, :3, 3], axis=1).mean()
+         for i in (0, -1)]
+    assert d[1] < d[0] - 0.02
+
+
+def test_warm_and_cold_agree(assets):
+    kp, valid, Q, T = _own_fk_keypoints("allegro", n=10, seed=4)
+    warm = retarget(kp, valid, "allegro", CFG)
+    cold = retarget(kp, valid, "allegro", CFG.model_copy(update={"warm_start": False}))
+    assert (warm.status == Reason.OK).all() and (cold.status == Reason.OK).all()
+    np.testing.assert_allclose(warm.qpos, cold.qpos, atol=2e-2)
+    np.testing.assert_allclose(warm.root_pose, cold.root_pose, atol=1e-3)
+    np.testing.assert_allclose(warm.fingertip_error_mm, cold.fingertip_error_mm, atol=0.5)
+
+
+def test_no_keypoints_frames(assets):
+    kp, valid = _human_trajectory(n=10)
+    valid[3, JOINT_INDEX["wrist"]] = False  # palm frame impossible
+    valid[4] = False
+    kp[4] = 0.0
+    valid[6, [4, 8, 12, 16, 20]] = False  # no fingertips at all
+    valid[7, 8] = False  # one fingertip missing: still solvable
+    r = retarget(kp, valid, "leap", CFG)
+    assert list(np.flatnonzero(r.status == Reason.NO_KEYPOINTS)) == [3, 4, 6]
+    assert (np.delete(r.status, [3, 4, 6]) == Reason.OK).all()
+    np.testing.assert_array_equal(r.qpos[4], r.qpos[5])  # nearest solved frame (ties: earlier)
+    assert np.isnan(r.fingertip_error_mm[4]) and np.isfinite(r.fingertip_error_mm[7])
+
+    none = retarget(kp, np.zeros_like(valid), "leap", CFG)
+    assert (none.status == Reason.NO_KEYPOINTS).all()
+    np.testing.assert_array_equal(none.root_pose, np.tile(np.eye(4), (10, 1, 1)))
+
+
+def test_rejection_thresholds(assets):
+    kp, valid = _human_trajectory(n=4)
+    r = retarget(kp, valid, "allegro", CFG.model_copy(update={"fingertip_reject_mm": 0.01}))
+    assert (r.status == Reason.FINGERTIP_ERROR).all()
+    r = retarget(kp, valid, "allegro", CFG.model_copy(update={"fingertip_reject_mm": 1e3, "wrist_reject_mm": 0.01}))
+    assert (r.status == Reason.WRIST_ERROR).all()
+
+
+def test_solver_is_cached(assets):
+    assert get_retargeter("ability", CFG) is get_retargeter("ability", RetargetConfig())
+    assert get_retargeter("ability", CFG) is not get_retargeter("ability", RetargetConfig(smooth_q=0.1))
+
+
+def test_unknown_embodiment(assets):
+    with pytest.raises(EmbodimentError, match="unknown embodiment id 'robo9000'.*allegro"):
+        retarget(np.zeros((1, 21, 3)), np.ones((1, 21), bool), "robo9000", CFG)
+
+
+def _asset_copy(robots_dir: Path, tmp_path: Path, monkeypatch) -> Path:
+    dst = tmp_path / "dex" / "hands" / "ability_hand"
+    shutil.copytree(robots_dir / "hands" / "ability_hand", dst)
+    monkeypatch.setenv("HANDEDIT_ASSET_DIRS", str(tmp_path / "dex"))
+    return dst / "ability_hand_right_glb.urdf"
+
+
+def test_missing_urdf_file_error(robots_dir, tmp_path, monkeypatch):
+    urdf = _asset_copy(robots_dir, tmp_path, monkeypatch)
+    urdf.unlink()
+    # ability only ships via dex-urdf, so resolution fails and names the missing file
+    with pytest.raises(EmbodimentError, match=re.escape("hands/ability_hand/ability_hand_right_glb.urdf")):
+        retarget(np.zeros((1, 21, 3)), np.ones((1, 21), bool), "ability", CFG)
+
+
+def test_broken_xml_error(robots_dir, tmp_path, monkeypatch):
+    urdf = _asset_copy(robots_dir, tmp_path, monkeypatch)
+    urdf.write_text(urdf.read_text().replace("</robot>", ""))
+    with pytest.raises(BrokenUrdf, match=re.escape(str(urdf.resolve()))):
+        retarget(np.zeros((1, 21, 3)), np.ones((1, 21), bool), "ability", CFG)
+
+
+def test_missing_mesh_error(robots_dir, tmp_path, monkeypatch):
+    urdf = _asset_copy(robots_dir, tmp_path, monkeypatch)
+    victim = sorted((urdf.parent / "meshes").rglob("*.glb"))[0]
+    victim.unlink()
+    with pytest.raises(MissingMesh, match=re.escape(victim.name)):
+        retarget(np.zeros((1, 21, 3)), np.ones((1, 21), bool), "ability", CFG)

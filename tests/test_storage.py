@@ -1,0 +1,148 @@
+"""The Zarr layout, chunk I/O, provenance and ledger, without a cluster."""
+
+from __future__ import annotations
+
+import json
+
+import dask.array as da
+import numpy as np
+import pytest
+import xarray as xr
+import zarr
+
+from handedit.reasons import Reason
+from storage import (
+    ChunkRecord,
+    StoreError,
+    Unit,
+    chunk_ranges,
+    create_or_open_store,
+    create_unit,
+    is_current,
+    open_store,
+    provenance_key,
+    read_chunk,
+    read_ledger,
+    read_records,
+    write_chunk,
+    write_ledger_table,
+    write_records,
+)
+from storage.store import jsonable
+
+F = 4
+
+
+@pytest.fixture
+def root(tmp_path):
+    return create_or_open_store(tmp_path / "s.zarr", frames_per_chunk=F, code_version="test")
+
+
+def test_unit_paths_and_validation():
+    assert Unit("ingest", "c1").path == "clips/c1/source"
+    assert Unit("restore_background", "c1", scope="hand_arm").path == "clips/c1/restore_background/hand_arm"
+    assert Unit("render", "c1", embodiment="allegro").path == "clips/c1/embodiments/allegro/render"
+    with pytest.raises(ValueError, match="unknown stage"):
+        Unit("nope", "c1")
+    with pytest.raises(ValueError, match="per embodiment"):
+        Unit("render", "c1")
+    with pytest.raises(ValueError, match="invalid clip id"):
+        Unit("ingest", "a/b").path
+
+
+def test_chunk_ranges_cover_clip_once():
+    ranges = chunk_ranges(10, 4)
+    assert ranges == [(0, 4), (4, 8), (8, 10)]
+    covered = np.concatenate([np.arange(a, b) for a, b in ranges])
+    assert np.array_equal(covered, np.arange(10))
+
+
+def test_arrays_chunked_per_writer_and_open_with_zarr_dask_xarray(root, tmp_path):
+    unit = Unit("ingest", "c1")
+    create_unit(root, unit, 10, {"H": 8, "W": 6}, F, has_object=True, has_gt=True)
+    frames = root[unit.path]["frames"]
+    assert frames.shape == (10, 8, 6, 3) and frames.chunks == (1, 8, 6, 3) and frames.shards == (F, 8, 6, 3)
+    assert "zstd" in str(frames.compressors) and "bitshuffle" in str(frames.compressors)
+    assert root[unit.path]["keypoints"].chunks == (F, 21, 3)
+    # two chunk-aligned writers fill disjoint files
+    a = np.random.default_rng(0).integers(0, 255, (4, 8, 6, 3), dtype=np.uint8)
+    b = np.random.default_rng(1).integers(0, 255, (4, 8, 6, 3), dtype=np.uint8)
+    write_chunk(root, unit, 0, {"frames": a})
+    write_chunk(root, unit, 4, {"frames": b})
+    got = read_chunk(zarr.open_group(str(tmp_path / "s.zarr"), mode="r"), unit, ["frames"], 0, 8)["frames"]
+    assert np.array_equal(got, np.concatenate([a, b]))
+    # plain zarr, dask.array and xarray open it
+    store = str(tmp_path / "s.zarr")
+    assert da.from_zarr(store, component=f"{unit.path}/frames")[:8].compute().sum() == got.sum()
+    ds = xr.open_zarr(store, group=unit.path, consolidated=False)
+    assert ds["frames"].dims == ("frame", "y", "x", "rgb") and ds.sizes["frame"] == 10
+
+
+def test_write_chunk_rejects_wrong_shapes(root):
+    unit = Unit("segment", "c1")
+    create_unit(root, unit, 8, {"H": 4, "W": 4}, F)
+    with pytest.raises(ValueError, match="segment"):
+        write_chunk(root, unit, 0, {"hand_mask": np.zeros((4, 5, 4), bool)})
+    with pytest.raises(KeyError, match="no array"):
+        write_chunk(root, unit, 0, {"bogus": np.zeros((4,))})
+
+
+def test_digest_changes_with_content(root):
+    unit = Unit("segment", "c1")
+    create_unit(root, unit, 8, {"H": 4, "W": 4}, F)
+    d1 = write_chunk(root, unit, 0, {"confidence": np.zeros(4, np.float32)})
+    d2 = write_chunk(root, unit, 0, {"confidence": np.ones(4, np.float32)})
+    d3 = write_chunk(root, unit, 4, {"confidence": np.zeros(4, np.float32)})
+    assert d1["confidence"] != d2["confidence"] and d1["confidence"] == d3["confidence"]
+
+
+def test_provenance_key_and_records(root):
+    k1 = provenance_key("harmonize", 1, {"strength": 0.5}, {"a": "x"})
+    assert k1 == provenance_key("harmonize", 1, {"strength": 0.5}, {"a": "x"})
+    assert k1 != provenance_key("harmonize", 1, {"strength": 0.6}, {"a": "x"})
+    assert k1 != provenance_key("harmonize", 2, {"strength": 0.5}, {"a": "x"})
+    assert k1 != provenance_key("harmonize", 1, {"strength": 0.5}, {"a": "y"})
+    unit = Unit("harmonize", "c1", embodiment="allegro")
+    create_unit(root, unit, 8, {"H": 4, "W": 4}, F)
+    rec = ChunkRecord("harmonize", 1, 4, 8, k1, 1, {"strength": 0.5}, {"a": "x"}, seconds=np.float64(0.5))
+    write_records(root, unit, [rec])
+    back = read_records(open_store(root.store.root, mode="r"), unit)[1]
+    assert back.key == k1 and back.start == 4 and back.seconds == 0.5
+    assert is_current(back, k1) and not is_current(back, "other")
+    back.outcome = "error"
+    assert not is_current(back, k1)  # failed chunks are retried
+
+
+def test_jsonable_handles_numpy_and_nan():
+    out = jsonable({"a": np.float32(1.5), "b": np.int64(3), "c": float("nan"), "d": np.arange(2), "e": np.bool_(True)})
+    assert out == {"a": 1.5, "b": 3, "c": None, "d": [0, 1], "e": True}
+    json.dumps(out, allow_nan=False)
+
+
+def test_ledger_table_from_records(root):
+    unit = Unit("segment", "c1")
+    create_unit(root, unit, 8, {"H": 4, "W": 4}, F)
+    rec = ChunkRecord("segment", 0, 0, 4, "k", 1, {}, {},
+                      rejections=[{"frame": 2, "reason": int(Reason.EMPTY_MASK), "detail": "empty"}])
+    write_records(root, unit, [rec])
+    root.attrs.update({"clips": {"bad": {"error": "bad.mp4: cannot decode", "reason": int(Reason.SOURCE_UNREADABLE)}}})
+    ledger = read_ledger(root)
+    assert list(ledger.columns) == ["stage", "clip", "scope", "embodiment", "frame", "reason", "reason_name", "detail"]
+    rows = ledger.to_dict(orient="records")
+    assert {"stage": "segment", "clip": "c1", "frame": 2, "reason_name": "EMPTY_MASK"}.items() <= rows[1].items()
+    assert rows[0]["frame"] == -1 and rows[0]["reason_name"] == "SOURCE_UNREADABLE"
+    # re-recording the chunk replaces its rows instead of appending
+    rec.rejections = []
+    write_records(root, unit, [rec])
+    assert len(read_ledger(root)) == 1
+    assert write_ledger_table(root) == 1
+    g = zarr.open_group(root.store.root, mode="r")["ledger"]
+    assert list(g["clip"][:]) == ["bad"] and int(g["frame"][0]) == -1
+
+
+def test_store_open_errors(tmp_path):
+    with pytest.raises(StoreError, match="not a handedit store"):
+        open_store(tmp_path / "missing.zarr")
+    create_or_open_store(tmp_path / "s.zarr", 4, "t")
+    with pytest.raises(StoreError, match="frames_per_chunk=4"):
+        create_or_open_store(tmp_path / "s.zarr", 8, "t")
