@@ -148,7 +148,7 @@ class RobotRenderer:
         if not (np.isfinite(qpos).all() and np.isfinite(root_pose).all()):
             raise ValueError("qpos and root_pose must be finite")
         R = root_pose[:, :3, :3]
-        if not np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-4) or (np.linalg.det(R) <= 0).any():
+        if not np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-3) or (np.linalg.det(R) <= 0).any():
             # the shader transforms normals with the pose's rotation, which needs a rigid pose
             raise ValueError("root_pose rotations must be proper rotations (rigid camera_from_root)")
         if self._gl is None:

@@ -6,6 +6,7 @@ to the temp directory.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import tempfile
@@ -97,6 +98,7 @@ void main()
 SOURCES = {"robot.vert": ROBOT_VERT, "robot.frag": ROBOT_FRAG}
 
 
+@functools.lru_cache(maxsize=1)
 def shader_dir() -> Path:
     """Directory holding ``robot.vert`` and ``robot.frag`` (written atomically if missing)."""
     digest = hashlib.sha1("".join(SOURCES.values()).encode()).hexdigest()[:12]

@@ -200,7 +200,7 @@ def _open_pose(rng: np.random.Generator) -> hm.HandPose:
     d = np.deg2rad
     spreads = d(np.array([9.0, 0.0, -8.0, -17.0]) + rng.uniform(-2, 2, 4))
     fingers = [hm.finger_pose(s, tuple(d(np.array([4.0, 8.0, 5.0]) + rng.uniform(-3, 3, 3)))) for s in spreads]
-    thumb = hm.thumb_pose(hm.THUMB_OPEN, tuple(d(np.array([0.0, 5.0, 5.0]))))
+    thumb = hm.thumb_pose(hm.THUMB_OPEN, tuple(d(np.array([0.0, 5.0, 5.0]))), azimuth=d(50.0))
     return hm.HandPose((thumb, *fingers))
 
 
@@ -241,7 +241,7 @@ def _close_hand(geom: hm.HandGeom, sdf: hm.SdfFn, rng_spread: np.ndarray) -> tup
     pose = hm.HandPose(tuple(digits))
     kp, _ = hm.hand_keypoints(geom, pose)
     tips = np.clip(sdf(kp[[4, 8, 12, 16, 20]]), 0, None)
-    score += float(tips.sum() + 3.0 * np.clip(tips - 0.012, 0, None).sum())
+    score += float(tips.sum() + 10.0 * np.clip(tips - 0.012, 0, None).sum())
     score += 0.03 * (1.0 - (beta - hm.THUMB_OPEN) / (hm.THUMB_OPPOSED - hm.THUMB_OPEN))  # prefer an opposed thumb
     for g, p in zip(geom.digits, digits):
         score += 20.0 * max(0.0, -hm.digit_clearance(g, p, sdf))
@@ -469,6 +469,7 @@ class _Scene:
     obj: "pyrender.Node"
     hand_meshes: list
     seg_map: dict
+    table: "pyrender.Mesh"
 
 
 def _linear(srgb) -> np.ndarray:
@@ -506,8 +507,9 @@ def _build_scene(plan: ClipPlan) -> _Scene:
     import pyrender
 
     rng = np.random.default_rng(plan.table_seed + 1)
-    scene = pyrender.Scene(bg_color=(0, 0, 0, 1.0), ambient_light=np.full(3, plan.ambient))
-    scene.add(_table_mesh(pyrender, plan.table_seed))
+    scene = pyrender.Scene(bg_color=(0, 0, 0, 0.0), ambient_light=np.full(3, plan.ambient))
+    table = _table_mesh(pyrender, plan.table_seed)
+    scene.add(table)
 
     obj_tm = plan.obj.mesh()
     obj_mat = pyrender.MetallicRoughnessMaterial(baseColorFactor=(*_linear(plan.obj.rgb), 1.0), metallicFactor=0.0,
@@ -536,7 +538,7 @@ def _build_scene(plan: ClipPlan) -> _Scene:
     seg_map[forearm] = _SEG_ARM
     seg_map[obj] = _SEG_OBJ
     return _Scene(scene, cam, key, lamp, palm, segments, nails, forearm, obj,
-                  [palm_mesh, *seg_meshes, *nail_meshes, arm_mesh], seg_map)
+                  [palm_mesh, *seg_meshes, *nail_meshes, arm_mesh], seg_map, table)
 
 
 def _pose_scene(s: _Scene, plan: ClipPlan, st: FrameState) -> None:
@@ -559,6 +561,7 @@ def _pose_scene(s: _Scene, plan: ClipPlan, st: FrameState) -> None:
 _RENDERERS: dict[tuple[int, int], "pyrender.OffscreenRenderer"] = {}
 _SCENES: "OrderedDict[tuple[int, int, str], _Scene]" = OrderedDict()
 _MAX_SCENES = 4
+_SCENES_LOCK = threading.Lock()
 
 
 def _renderer(width: int, height: int) -> "pyrender.OffscreenRenderer":
@@ -568,19 +571,24 @@ def _renderer(width: int, height: int) -> "pyrender.OffscreenRenderer":
     key = (os.getpid(), threading.get_ident())
     r = _RENDERERS.get(key)
     if r is None:
-        r = _RENDERERS[key] = pyrender.OffscreenRenderer(width, height)
+        r = pyrender.OffscreenRenderer(width, height)
+        with _SCENES_LOCK:
+            _RENDERERS[key] = r
     r.viewport_width, r.viewport_height = width, height
     return r
 
 
 def _scene_for(fingerprint: str, plan: ClipPlan) -> _Scene:
     key = (os.getpid(), threading.get_ident(), fingerprint)
-    s = _SCENES.get(key)
+    with _SCENES_LOCK:
+        s = _SCENES.get(key)
     if s is None:
-        s = _SCENES[key] = _build_scene(plan)
+        s = _build_scene(plan)
+    with _SCENES_LOCK:
+        _SCENES[key] = s
+        _SCENES.move_to_end(key)
         while len(_SCENES) > _MAX_SCENES:
             _SCENES.popitem(last=False)
-    _SCENES.move_to_end(key)
     return s
 
 
@@ -593,31 +601,44 @@ class RenderedFrame:
     object_mask: np.ndarray
 
 
-def _render(s: _Scene, r: "pyrender.OffscreenRenderer") -> RenderedFrame:
-    """Three passes: full RGB, RGB without hand/forearm, and labels (aliased, depth-tested).
+def _set_visible(meshes: list, visible: bool) -> None:
+    for m in meshes:
+        m.is_visible = visible
 
-    The hand masks are the labelled pixels plus every pixel where anti-aliasing let the
-    hand tint the colour, so ``rgb == background`` holds exactly outside ``handarm_mask``.
+
+def _render(s: _Scene, r: "pyrender.OffscreenRenderer") -> RenderedFrame:
+    """Background (no hand), a hand layer (no table, RGBA) and labels (aliased, depth-tested).
+
+    The frame is the MSAA hand layer composited over the background with its coverage
+    alpha, only near labelled hand pixels: identical to rendering everything at once up to
+    rounding, but the full-screen table is shaded once instead of twice. ``handarm_mask``
+    is the labelled pixels plus every pixel the hand tinted, so ``frame == background``
+    holds exactly outside it.
     """
     import pyrender
 
-    rgb, _ = r.render(s.scene)
-    for m in s.hand_meshes:
-        m.is_visible = False
+    _set_visible(s.hand_meshes, False)
     try:
         bg, _ = r.render(s.scene)
     finally:
-        for m in s.hand_meshes:
-            m.is_visible = True
+        _set_visible(s.hand_meshes, True)
+    s.table.is_visible = False
+    try:
+        layer, _ = r.render(s.scene, flags=pyrender.RenderFlags.RGBA)
+    finally:
+        s.table.is_visible = True
     seg, _ = r.render(s.scene, flags=pyrender.RenderFlags.SEG, seg_node_map=s.seg_map)
-    hand_px = seg[..., 0] > 127
-    arm_px = seg[..., 1] > 127
-    obj_px = seg[..., 2] > 127
+    hand_px, arm_px, obj_px = seg[..., 0] > 127, seg[..., 1] > 127, seg[..., 2] > 127
+    kernel = np.ones((3, 3), np.uint8)
+    near = cv2.dilate((hand_px | arm_px).astype(np.uint8), kernel).astype(bool)
+    alpha = layer[..., 3:].astype(np.float32) / 255.0
+    comp = np.clip(layer[..., :3] + (1.0 - alpha) * bg + 0.5, 0, 255).astype(np.uint8)  # premultiplied over
+    rgb = np.where(near[..., None], comp, bg)
     tinted = np.any(rgb != bg, axis=-1)
     handarm = hand_px | arm_px | tinted
-    near_hand = cv2.dilate(hand_px.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    near_hand = cv2.dilate(hand_px.astype(np.uint8), kernel).astype(bool)
     hand = hand_px | (tinted & ~arm_px & near_hand)
-    return RenderedFrame(rgb.copy(), bg.copy(), hand, handarm, obj_px)
+    return RenderedFrame(rgb, bg.copy(), hand, handarm, obj_px)
 
 
 # ----------------------------------------------------------------------------- source
