@@ -26,6 +26,9 @@ def _prefect_defaults() -> None:
     """No telemetry, and quiet Prefect logs unless the user asked otherwise."""
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+    # Without PREFECT_API_URL a temporary local API is started; its default 20 s start-up
+    # budget is too short on a loaded 2-core machine.
+    os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "180")
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
     os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
 
@@ -79,7 +82,13 @@ def cmd_curate(args: argparse.Namespace) -> int:
     print(f"curating {len(config.clips)} clip(s) x {len(config.embodiments)} embodiment(s) into {config.out}")
     where = config.cluster.address or f"a local Dask cluster ({config.cluster.n_workers} worker processes)"
     print(f"running on {where}; the Dask dashboard link follows when the cluster is up")
-    summary = run_curate(config, progress=not args.no_progress)
+    from storage import StoreError
+
+    try:
+        summary = run_curate(config, progress=not args.no_progress)
+    except StoreError as exc:
+        print(f"handedit curate: {exc}", file=sys.stderr)
+        return 2
     print_summary(summary)
     return 0
 
@@ -186,6 +195,10 @@ def parser() -> argparse.ArgumentParser:
     db.add_argument("store")
     db.add_argument("--out", help="default: STORE_DIR/qa.html")
     db.set_defaults(func=cmd_dashboard)
+
+    from flows.commands import register_all
+
+    register_all(sub)
     return p
 
 

@@ -11,8 +11,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from handedit.embodiments import get_embodiment
 from handedit.qc import QCConfig
 from handedit.render.stage import RenderConfig
 from handedit.retarget import RetargetConfig
@@ -82,6 +83,16 @@ class CurateConfig(BaseModel):
         default_factory=list,
         description="drills/tests: 'stage:clip[:embodiment]' globs whose chunks raise InjectedFault",
     )
+
+    @field_validator("embodiments")
+    @classmethod
+    def _known_embodiments(cls, ids: list[str]) -> list[str]:
+        """A typo fails before any work starts; missing assets are per-embodiment rejections."""
+        for emb_id in ids:
+            get_embodiment(emb_id)  # raises with the list of known ids
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"embodiments listed twice: {ids}")
+        return ids
 
     def stage_config(self, stage: str) -> BaseModel:
         return IngestConfig() if stage == "ingest" else getattr(self, stage)

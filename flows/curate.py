@@ -60,11 +60,10 @@ def plan_clips(config: CurateConfig) -> tuple[list[ClipPlan], dict[str, str]]:
     """Open each source on the driver (metadata only); a bad source is a clip-level rejection."""
     plans, errors = [], {}
     for spec in config.clips:
-        label = getattr(spec, "clip_id", None) or str(getattr(spec, "path", spec))
         try:
             info = open_source(spec).info()
         except SourceError as exc:
-            errors[Path(str(label)).stem if "/" in str(label) else str(label)] = str(exc)
+            errors[spec.clip_id or Path(spec.path).stem] = str(exc)
             continue
         plans.append(
             ClipPlan(

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from typing import Callable, Iterable
 
 from flows.dag import Node, NodeId
-from storage.provenance import ChunkRecord, is_current, provenance_key
+from storage.provenance import is_current, provenance_key
 
 
 @dataclass
@@ -102,7 +102,7 @@ def run_dag(
             prep = Prepared(node, provenance_key(node.unit.stage, version, params, inputs), inputs, version, params)
             counts = result.counts[node.unit.stage]
             old = stored(node.id)
-            if old is not None and is_current(ChunkRecord.from_json(old), prep.key):
+            if is_current(old, prep.key):
                 counts.skipped += 1
                 finish(node.id, old)
                 continue

@@ -57,11 +57,11 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0,
     eye = np.asarray(eye, float)
     z = np.asarray(target, float) - eye
     z /= np.linalg.norm(z)
-    x = np.cross(z, -np.asarray(up, float))
+    x = np.cross(z, np.asarray(up, float))  # image right
     if np.linalg.norm(x) < 1e-9:
         x = np.cross(z, np.array([0.0, 1.0, 0.0]))
     x /= np.linalg.norm(x)
-    y = np.cross(z, x)
+    y = np.cross(z, x)  # image down
     T = np.eye(4)
     T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, eye
     return T

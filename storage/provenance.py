@@ -84,6 +84,8 @@ def write_records(root: zarr.Group, unit: Unit, records: list[ChunkRecord]) -> N
     group.attrs.update({PROVENANCE_ATTR: current})
 
 
-def is_current(record: ChunkRecord | None, key: str) -> bool:
+def is_current(record: ChunkRecord | dict | None, key: str) -> bool:
     """A stored chunk can be reused: same key, and it completed (errors are retried)."""
+    if isinstance(record, dict):
+        return record.get("key") == key and record.get("outcome") == "ok"
     return record is not None and record.key == key and record.outcome == "ok"

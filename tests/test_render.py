@@ -91,15 +91,15 @@ def test_geometry_matches_fk_projection_and_depth(hand):
     mask, depth = res.mask[0], res.depth[0]
     urdf = yourdfpy.URDF.load(str(path), build_scene_graph=True, load_meshes=True)
     urdf.update_cfg(q)
-    verts_root = urdf.scene.dump(concatenate=True).vertices
+    verts_root = urdf.scene.to_mesh().vertices
     verts_cam = verts_root @ T[:3, :3].T + T[:3, 3]
 
-    # every visual vertex projects into the silhouette (2 px slack for rasterisation)
-    grown = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    # every visual vertex projects into the silhouette (1 px slack for rasterisation)
+    grown = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
     uv = np.round(project(verts_cam, INTR)).astype(int)
     inside = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
     assert inside.all()
-    assert grown[uv[:, 1], uv[:, 0]].mean() > 0.995
+    assert grown[uv[:, 1], uv[:, 0]].mean() > 0.998
 
     # link frames of links with visual geometry land on the robot
     links = [link.name for link in urdf.robot.links if link.visuals]
@@ -114,7 +114,7 @@ def test_geometry_matches_fk_projection_and_depth(hand):
     d = depth[mask]
     z = verts_cam[:, 2]
     assert d.min() >= z.min() - 1e-3 and d.max() <= z.max() + 1e-3
-    assert d.min() < z.min() + 0.01, "the nearest visible surface is near the nearest vertex"
+    assert d.min() < z.min() + 0.003, "the nearest visible surface is near the nearest vertex"
 
 
 def test_moving_away_shrinks_mask_and_shifts_depth(hand):
@@ -124,7 +124,7 @@ def test_moving_away_shrinks_mask_and_shifts_depth(hand):
     res_far = r.render(q[None], far[None], INTR)
     assert res_far.mask.sum() < 0.95 * res.mask.sum()
     shift = res_far.depth[0][res_far.mask[0]].min() - res.depth[0][res.mask[0]].min()
-    assert abs(shift - 0.05) < 0.004
+    assert abs(shift - 0.05) < 0.002
 
 
 def test_reuse_gives_identical_output(hand):

@@ -107,6 +107,17 @@ class Kinematics:
             self._memo[link] = self.fk_expr(j.parent) @ self._local(j, self._q)
         return self._memo[link]
 
+    def chain(self, link: str) -> list[_Joint]:
+        """Joints from the base link down to ``link`` (root first)."""
+        if link not in self.link_names:
+            raise KeyError(f"link '{link}' not in {self.urdf_path.name}; links: {self.link_names}")
+        out = []
+        while link != self.base_link:
+            j = self._joints[link]
+            out.append(j)
+            link = j.parent
+        return out[::-1]
+
     @property
     def q_sym(self) -> ca.SX:
         return self._q

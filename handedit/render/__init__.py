@@ -6,6 +6,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")  # must precede any pyrender/O
 
 from handedit.render.cache import clear_renderers, get_renderer, render_embodiment  # noqa: E402
 from handedit.render.framing import frame_points, rotation_from_euler  # noqa: E402
+from handedit.render.model import joint_limits  # noqa: E402
 from handedit.render.renderer import RenderResult, RobotRenderer  # noqa: E402
 
 __all__ = [
@@ -14,6 +15,7 @@ __all__ = [
     "clear_renderers",
     "frame_points",
     "get_renderer",
+    "joint_limits",
     "render_embodiment",
     "rotation_from_euler",
 ]

@@ -70,7 +70,9 @@ void main()
 {
     vec3 base = material.base_color_factor.rgb;
     float metallic = clamp(material.metallic_factor, 0.0, 1.0);
-    float roughness = clamp(material.roughness_factor, 0.04, 1.0);
+    // Roughness floor: real lights are area lights; a glossy CAD material under our directional
+    // lights would otherwise paint mirror-like white streaks along black plastic links.
+    float roughness = clamp(material.roughness_factor, 0.4, 1.0);
     float a = roughness * roughness;
     float shininess = max(2.0 / (a * a) - 2.0, 1.0);
 

@@ -50,7 +50,7 @@ _UNKNOWN_STABILITY = 0.75  # stability term for a frame without usable neighbour
 
 
 class SegmentConfig(pydantic.BaseModel):
-    VERSION: ClassVar[int] = 1
+    VERSION: ClassVar[int] = 2
     model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
 
     method: Literal["classical"] = "classical"
@@ -60,7 +60,7 @@ class SegmentConfig(pydantic.BaseModel):
     skin_threshold: float = pydantic.Field(0.3, gt=0, lt=1)  # skin prob that marks "probably hand"
     roi_margin: float = 0.6  # hand region = keypoint hull grown by this x hand scale
     forearm_width: float = 1.0  # forearm corridor width, x hand scale
-    wrist_margin: float = 0.15  # the hand keeps this much (x hand scale) past the wrist joint
+    wrist_margin: float = -0.1  # hand/arm cut this far (x hand scale) past the wrist joint; <0: proximal palm edge lies before it
     temporal_weight: float = pydantic.Field(0.2, ge=0, le=0.5)  # weight of each neighbour's soft mask
     guided_eps: float = pydantic.Field(0.1, gt=0)  # guided-filter regulariser, in units of full intensity
     min_area_frac: float = 0.001  # masks / skin components smaller than this fraction of the frame are empty
@@ -68,6 +68,8 @@ class SegmentConfig(pydantic.BaseModel):
     wrist_factor: float = 1.4  # without keypoints: wrist cut this many palm radii past the palm
     blank_std: float = 2.0  # grey-level std below which a frame is blank
     min_confidence: float = 0.5
+    seed_min_skin: float = pydantic.Field(0.1, ge=0, lt=1)  # skeleton seeds below this skin prob are not "sure"
+    skin_gate: float = pydantic.Field(0.02, ge=0, lt=1)  # keypoint frames: fg pixels below this skin prob are dropped
     no_keypoint_factor: float = pydantic.Field(0.8, gt=0, le=1)
 
 
@@ -200,6 +202,12 @@ def _segment_kp(bgr: np.ndarray, prob: np.ndarray, kp: _KpFrame, cfg: SegmentCon
     sure = cv2.erode(sure.astype(np.uint8), _disk(0.04 * s)).astype(bool) | _draw_skeleton(
         shape, kp.pts, kp.valid, 1, tip_frac=0.7
     )
+    # Keypoints of fingers wrapped behind a grasped object project onto the object: seeding
+    # those pixels would teach GrabCut the object's colours and it would swallow the object.
+    # Seeds count only where the chunk's skin model agrees.
+    skin_seed = prob >= cfg.seed_min_skin
+    if (sure & skin_seed).sum() >= 0.2 * sure.sum():
+        sure &= skin_seed
     likely = _draw_skeleton(shape, kp.pts, kp.valid, int(round(0.3 * s)), tip_frac=1.0)
     roi = cv2.dilate(likely.astype(np.uint8), _disk(cfg.roi_margin * s)).astype(bool)
     corridor = np.zeros(shape, np.uint8)
@@ -216,8 +224,10 @@ def _segment_kp(bgr: np.ndarray, prob: np.ndarray, kp: _KpFrame, cfg: SegmentCon
     # background's colours (it then swallows whole regions): those stay "probably bg".
     init[likely & (prob >= 0.05)] = cv2.GC_PR_FGD
     init[sure] = cv2.GC_FGD
+    init[roi & (prob < cfg.skin_gate) & (init != cv2.GC_FGD)] = cv2.GC_BGD
     fg = _grabcut(bgr, init, cfg.grabcut_iters)
     fg = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_CLOSE, _disk(1)).astype(bool)
+    fg &= (prob >= cfg.skin_gate) | sure
     fg = _keep_touching(fg, sure)
     if kp.forearm is None:
         return fg, fg
@@ -307,7 +317,14 @@ def _segment_nokp(bgr: np.ndarray, ycc: np.ndarray, prob: np.ndarray, cfg: Segme
 def _fit_skin(ycc: list[np.ndarray], seeds: list[np.ndarray | None]) -> SkinModel:
     """One skin model for the chunk: keypoint seeds if any, else the prior rule's pixels."""
     rng = np.random.default_rng(0)
-    samples = [y[s][:, 1:3] for y, s in zip(ycc, seeds) if s is not None and s.any()]
+    samples = []
+    for y, s in zip(ycc, seeds):
+        if s is None or not s.any():
+            continue
+        # seeds on a grasped object (occluded fingers) are not skin: trust the prior rule's
+        # pixels among them unless it rejects most (gloves, odd white balance)
+        ok = s & prior_rule(y)
+        samples.append(y[ok if ok.sum() >= 0.3 * s.sum() else s][:, 1:3])
     if not samples:
         samples = [y[prior_rule(y)][:, 1:3] for y in ycc]
     x = np.concatenate(samples) if samples else np.zeros((0, 2))

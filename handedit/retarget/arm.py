@@ -1,0 +1,233 @@
+"""The arm of a hand-arm embodiment, seen from the retargeting side: which joints move the
+hand's wrist link, its nominal reach L_r, a casadi IK solver and capsule geometry for
+collision checks.
+
+Built from the composed hand-arm URDF (dex-urdf ``assembly/``), loaded directly: the
+hand is attached there by its own fixed mount joint, so the "human wrist -> robot wrist"
+SE(3) is the hand's ``wrist_from_root`` (roster) plus the hand URDF's own chain to its
+wrist keypoint link, a link that exists under the same name in both URDFs. The arm
+joints are the actuated joints on the path from the assembly root to that link, minus
+joints the hand retargeter locks (Shadow's WRJ1/WRJ2), which keep their locked values.
+
+Embodiment ids map to an assembly here (``ASSEMBLIES``) until the embodiment roster
+publishes hand-arm entries; ``arm_model`` accepts either.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from handedit.embodiments.errors import AssetsMissing, EmbodimentError
+from handedit.embodiments.kinematics import Kinematics, get_kinematics
+from handedit.embodiments.roster import asset_dirs, get_embodiment, resolve_asset
+from handedit.keypoints import JOINT_INDEX, WRIST
+
+CM = 100.0
+
+# hand-arm embodiment id -> (assembly URDF relative to a dex-urdf root, hand embodiment id)
+ASSEMBLIES: dict[str, tuple[str, str]] = {
+    "ur5e_shadow": ("assembly/ur5e_shadow/ur5e_shadow_right_hand_glb.urdf", "shadow"),
+    "xarm7_ability": ("assembly/xarm7_ability/xarm7_ability_right_hand_glb.urdf", "ability"),
+    "rm75_inspire": ("assembly/rm75_inspire/rm75_inspire_right_hand.urdf", "inspire"),
+}
+
+
+@dataclass
+class IKSolution:
+    q: np.ndarray  # (dof,) full assembly vector
+    pos_err_mm: float
+    rot_err_deg: float
+    ok: bool  # solver did not fail
+    x: np.ndarray
+    lam_x: np.ndarray
+
+
+class ArmModel:
+    """IK and geometry of one hand-arm assembly (build once per process: ``arm_model``)."""
+
+    def __init__(self, embodiment_id: str, assembly: Path, hand_id: str):
+        self.embodiment_id, self.assembly, self.hand_id = embodiment_id, Path(assembly), hand_id
+        ra = resolve_asset(get_embodiment(hand_id))
+        self.hand_kin = get_kinematics(ra.path)
+        self.hand_asset = ra.asset
+        self.kin: Kinematics = get_kinematics(self.assembly)
+        kps = {k.mano: k for k in ra.asset.keypoints}
+        self.wrist_link = kps[WRIST].link
+        self.wrist_offset = np.asarray(kps[WRIST].offset, float)
+        self.centre_link = kps.get(JOINT_INDEX["middle_mcp"], kps[WRIST]).link  # palm centre, for capsules
+        locked = dict(ra.asset.locked_joints)
+        path = self._path_links(self.wrist_link)
+        self.path_links = path
+        on_path = [self.kin._joints[l].name for l in path[1:]]  # joints whose child is on the path
+        names = self.kin.joint_names
+        self.arm_idx = np.array([names.index(n) for n in on_path if n in names and n not in locked], dtype=int)
+        self.arm_joint_names = [names[i] for i in self.arm_idx]
+        self.q_fixed = self.kin.neutral()
+        for n, v in locked.items():
+            if n in names:
+                self.q_fixed[names.index(n)] = v
+        self.lower, self.upper = self.kin.lower[self.arm_idx], self.kin.upper[self.arm_idx]
+        self.lo_s = np.where(np.isfinite(self.lower), self.lower, -2 * np.pi)
+        self.hi_s = np.where(np.isfinite(self.upper), self.upper, 2 * np.pi)
+        self.n = len(self.arm_idx)
+        if self.n < 6:
+            raise EmbodimentError(f"{self.assembly}: only {self.n} arm joints lead to '{self.wrist_link}'; need >= 6")
+
+        # symbolic: full q with arm joints free, the rest fixed ---------------------------
+        qa = ca.SX.sym("qa", self.n)
+        q_full = ca.SX(self.q_fixed)
+        for j, i in enumerate(self.arm_idx):
+            q_full[int(i)] = qa[j]
+        T = ca.substitute(self.kin.fk_expr(self.wrist_link), self.kin.q_sym, q_full)
+        p = T[:3, :3] @ ca.SX(self.wrist_offset) + T[:3, 3]
+        R = T[:3, :3]
+        # capsule chain: origins of the moving path links + the palm centre
+        pts = [ca.substitute(self.kin.fk_expr(l)[:3, 3], self.kin.q_sym, q_full) for l in path]
+        pts.append(ca.substitute(self.kin.fk_expr(self.centre_link)[:3, 3], self.kin.q_sym, q_full))
+        self._chain_fn = ca.Function("chain", [qa], [ca.horzcat(*pts)])
+        self._pose_fn = ca.Function("wrist", [qa], [p, R])
+        self.moving = self._moving_points()
+
+        p_t, R_t, q_prev = ca.SX.sym("p_t", 3), ca.SX.sym("R_t", 3, 3), ca.SX.sym("q_prev", self.n)
+        w_s = ca.SX.sym("w_s")
+        mid = ca.SX((self.lo_s + self.hi_s) / 2)
+        cost = CM * CM * ca.sumsqr(p - p_t) + 100.0 * 0.5 * ca.sumsqr(R - R_t)
+        cost += w_s * ca.sumsqr(qa - q_prev) + 1e-4 * ca.sumsqr(qa - mid)
+        opts = {"print_time": False, "ipopt": {
+            "print_level": 0, "sb": "yes", "max_iter": 150, "tol": 1e-8, "acceptable_tol": 1e-5,
+            "warm_start_init_point": "yes", "warm_start_bound_push": 1e-6, "warm_start_mult_bound_push": 1e-6,
+            "mu_strategy": "adaptive",
+        }}
+        self.solver = ca.nlpsol("arm_ik", "ipopt", {"x": qa, "p": ca.vertcat(p_t, ca.vec(R_t), q_prev, w_s), "f": cost}, opts)
+        self.reach = self._nominal_reach()
+
+    # -- structure --------------------------------------------------------------------
+    def _path_links(self, link: str) -> list[str]:
+        out = [link]
+        while out[-1] != self.kin.base_link:
+            out.append(self.kin._joints[out[-1]].parent)
+        return out[::-1]
+
+    def _moving_points(self) -> np.ndarray:
+        """Which chain points move with q (the rest are bolted to the base)."""
+        rng = np.random.default_rng(0)
+        a = self.chain(rng.uniform(self.lo_s, self.hi_s))
+        b = self.chain(rng.uniform(self.lo_s, self.hi_s))
+        return np.linalg.norm(a - b, axis=0) > 1e-6
+
+    def _nominal_reach(self) -> float:
+        """L_r: length of the kinematic chain from the first arm joint to the wrist link
+        (sum of joint-origin offsets along the path, URDF zero pose)."""
+        first = self.kin._by_name[self.arm_joint_names[0]].child
+        path = self.path_links[self.path_links.index(first):]
+        total = sum(float(np.linalg.norm(self.kin._joints[l].origin[:3, 3])) for l in path[1:])
+        return total + float(np.linalg.norm(self.wrist_offset))
+
+    @property
+    def shoulder(self) -> np.ndarray:
+        """Base-frame position of the first arm joint (reach is measured from here)."""
+        first = self.kin._by_name[self.arm_joint_names[0]].child
+        return self.kin.fk(self.q_fixed, first)[:3, 3]
+
+    # -- numeric ----------------------------------------------------------------------
+    def full_q(self, qa: np.ndarray) -> np.ndarray:
+        q = self.q_fixed.copy()
+        q[self.arm_idx] = qa
+        return q
+
+    def chain(self, qa: np.ndarray) -> np.ndarray:
+        """(3,P) capsule-chain points in the base frame."""
+        return np.asarray(self._chain_fn(np.asarray(qa, float)), float)
+
+    def wrist_pose(self, qa: np.ndarray) -> np.ndarray:
+        p, R = self._pose_fn(np.asarray(qa, float))
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = np.asarray(R, float), np.asarray(p, float).ravel()
+        return T
+
+    def solve(self, target: np.ndarray, q0: np.ndarray, q_prev: np.ndarray | None = None,
+              smooth: float = 1e-2, warm: IKSolution | None = None) -> IKSolution:
+        """IK for base_from_wrist ``target`` (4x4) from ``q0`` (arm joints), bounded by limits."""
+        q0 = np.clip(q0, self.lo_s, self.hi_s)
+        p = np.concatenate([target[:3, 3], target[:3, :3].reshape(-1, order="F"),
+                            q0 if q_prev is None else q_prev, [0.0 if q_prev is None else smooth]])
+        args = dict(x0=q0, p=p, lbx=self.lo_s, ubx=self.hi_s)
+        if warm is not None:
+            args["lam_x0"] = warm.lam_x
+        try:
+            sol = self.solver(**args)
+            status = str(self.solver.stats().get("return_status", ""))
+            x = np.asarray(sol["x"], float).ravel()
+            lam = np.asarray(sol["lam_x"], float).ravel()
+            ok = bool(np.all(np.isfinite(x))) and status not in ("Infeasible_Problem_Detected", "Invalid_Number_Detected")
+        except RuntimeError:
+            x, lam, ok = q0, np.zeros_like(q0), False
+        x = np.clip(x, self.lo_s, self.hi_s)
+        T = self.wrist_pose(x)
+        pe = float(np.linalg.norm(T[:3, 3] - target[:3, 3]) * 1000.0)
+        c = np.clip((np.trace(T[:3, :3].T @ target[:3, :3]) - 1) / 2, -1, 1)
+        return IKSolution(self.full_q(x), pe, float(np.degrees(np.arccos(c))), ok, x, lam)
+
+    def hand_root_from_wrist(self, hand_q: np.ndarray) -> np.ndarray:
+        """hand-URDF root -> wrist link (with the wrist keypoint offset), at hand joints ``hand_q``."""
+        T = self.hand_kin.fk(hand_q, self.wrist_link).copy()
+        T[:3, 3] = T[:3, :3] @ self.wrist_offset + T[:3, 3]
+        return T
+
+    def wrist_targets(self, root_pose: np.ndarray, hand_qpos: np.ndarray) -> np.ndarray:
+        """camera_from_wrist-link (T,4,4) from a hand retargeting result (root poses + qpos)."""
+        return np.stack([root_pose[i] @ self.hand_root_from_wrist(hand_qpos[i]) for i in range(len(root_pose))])
+
+    def assembly_qpos(self, arm_q: np.ndarray, hand_qpos: np.ndarray, hand_joint_names: list[str]) -> np.ndarray:
+        """Full assembly qpos (T,dof): arm joints from IK, finger joints by name from the hand."""
+        names = self.kin.joint_names
+        out = np.tile(self.q_fixed, (len(arm_q), 1))
+        out[:, self.arm_idx] = arm_q
+        for j, n in enumerate(hand_joint_names):
+            if n in names and names.index(n) not in set(self.arm_idx.tolist()):
+                out[:, names.index(n)] = hand_qpos[:, j]
+        return out
+
+
+def resolve_assembly(embodiment_id: str) -> tuple[Path, str]:
+    """(assembly URDF path, hand embodiment id) of a hand-arm embodiment id."""
+    try:  # the roster's own hand-arm entry, when it has one
+        emb = get_embodiment(embodiment_id)
+        if emb.arm is not None:
+            ra = resolve_asset(emb, emb.arm)
+            hand_id = next((e.id for e in _hand_embodiments() if e.hand == emb.hand), None)
+            if hand_id is not None:
+                return ra.path, hand_id
+    except EmbodimentError:
+        pass
+    if embodiment_id not in ASSEMBLIES:
+        raise EmbodimentError(
+            f"no hand-arm assembly known for embodiment {embodiment_id!r}; known: {', '.join(sorted(ASSEMBLIES))}")
+    rel, hand_id = ASSEMBLIES[embodiment_id]
+    for d in asset_dirs():
+        if (d / rel).is_file():
+            return (d / rel).resolve(), hand_id
+    raise AssetsMissing(f"hand-arm embodiment {embodiment_id!r} needs '{rel}' under a dex-urdf directory "
+                        f"listed in $HANDEDIT_ASSET_DIRS (searched {[str(d) for d in asset_dirs()]}).")
+
+
+def _hand_embodiments():
+    from handedit.embodiments.roster import list_embodiments
+
+    return [e for e in list_embodiments() if e.track == "hand"]
+
+
+@functools.lru_cache(maxsize=16)
+def _build(embodiment_id: str, path: str, hand_id: str) -> ArmModel:
+    return ArmModel(embodiment_id, Path(path), hand_id)
+
+
+def arm_model(embodiment_id: str) -> ArmModel:
+    """Per-process cached ``ArmModel`` of a hand-arm embodiment."""
+    path, hand_id = resolve_assembly(embodiment_id)
+    return _build(embodiment_id, str(path), hand_id)

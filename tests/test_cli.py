@@ -1,0 +1,43 @@
+"""The ``handedit`` command: the README's main job (small), inspection commands, bad input."""
+
+from __future__ import annotations
+
+import pytest
+
+from flows.cli import main
+
+
+def test_curate_demo_then_status_ledger_dashboard(tmp_path, capsys, prefect_api, dask_cluster):
+    out = tmp_path / "run"
+    code = main(["curate", "--demo", "--out", str(out), "--clips", "1", "--frames", "8", "--width", "160",
+                 "--height", "120", "--frames-per-chunk", "8", "--address", dask_cluster.scheduler_address,
+                 "--no-progress"])
+    text = capsys.readouterr().out
+    assert code == 0
+    assert str(out / "handedit.zarr") in text and "dask dashboard:" in text
+    assert "harmonize" in text and "rejections:" in text
+    assert main(["status", str(out)]) == 0
+    status = capsys.readouterr().out
+    assert "qc" in status and "OK" in status
+    assert main(["ledger", str(out), "--csv"]) == 0
+    assert capsys.readouterr().out.startswith("stage,clip,scope,embodiment,frame,reason,reason_name,detail")
+    assert main(["dashboard", str(out)]) == 0
+    page = (out / "qa.html").read_text()
+    assert "Kept frames" in page and "synthetic-0000" in page and "data:image/png;base64" in page
+
+
+def test_unknown_embodiment_fails_before_any_work(tmp_path, capsys):
+    assert main(["curate", "--demo", "--out", str(tmp_path / "x"), "--embodiment", "allegr0"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown embodiment id 'allegr0'" in err and "allegro" in err
+    assert not (tmp_path / "x").exists()
+
+
+def test_inspecting_something_that_is_not_a_store(tmp_path):
+    with pytest.raises(SystemExit, match="not a handedit store"):
+        main(["ledger", str(tmp_path)])
+
+
+def test_curate_needs_an_input(tmp_path):
+    with pytest.raises(SystemExit, match="give --demo, --video FILE or --config FILE"):
+        main(["curate", "--out", str(tmp_path)])
