@@ -26,5 +26,7 @@ fi
 
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q -e ".${extras}"
+# compat mode puts the repo root on sys.path: Dask workers prepend their scratch dir,
+# whose spill folder is named storage/, and a strict editable finder would lose to it.
+.venv/bin/python -m pip install -q -e ".${extras}" --config-settings editable_mode=compat
 echo "handedit is set up in $(pwd)/.venv"

@@ -25,7 +25,7 @@ import handedit
 from flows.config import CurateConfig
 from flows.dag import ClipPlan, Node, NodeId, build_nodes
 from flows.scheduler import DagResult, Prepared, run_dag
-from handedit.embodiments import describe_embodiment
+from handedit.embodiments import EmbodimentError, describe_embodiment, get_embodiment
 from handedit.reasons import Reason
 from handedit.sources import SourceError, open_source
 from storage import Unit, create_or_open_store, create_unit, read_records, write_ledger_table, write_records
@@ -86,15 +86,16 @@ def plan_clips(config: CurateConfig) -> tuple[list[ClipPlan], dict[str, str]]:
 
 
 def plan_embodiments(ids: list[str]) -> list[EmbodimentPlan]:
-    """Resolve each embodiment's track and joints; missing assets reject only its frames."""
+    """Resolve each embodiment's track and joints; missing or broken assets reject only
+    that embodiment's frames (ids themselves were validated with the config)."""
     plans = []
     for emb_id in ids:
+        track = get_embodiment(emb_id).track
         try:
-            scope, joints = describe_embodiment(emb_id)
-            plans.append(EmbodimentPlan(emb_id, scope, joints))
-        except Exception as exc:  # unknown id, missing assets, broken URDF: recorded, not fatal
-            reason = int(getattr(exc, "reason", Reason.ASSETS_MISSING))
-            plans.append(EmbodimentPlan(emb_id, getattr(exc, "scope", "hand"), [], f"{type(exc).__name__}: {exc}", reason))
+            _, joints = describe_embodiment(emb_id)
+            plans.append(EmbodimentPlan(emb_id, track, joints))
+        except EmbodimentError as exc:
+            plans.append(EmbodimentPlan(emb_id, track, [], f"{type(exc).__name__}: {exc}", int(exc.reason)))
     return plans
 
 
@@ -130,7 +131,7 @@ def _dashboard_link() -> str | None:
         return None
 
 
-@flow(name="curate", log_prints=True)
+@flow(name="curate")
 def curate(config: CurateConfig, progress: bool = False) -> dict:
     """Curate ``config.clips`` x ``config.embodiments`` into the store at ``config.out``."""
     logger = get_run_logger()
@@ -191,10 +192,11 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
     def on_record(node: Node, record: dict) -> None:
         write_records(root, node.unit, [ChunkRecord.from_json(record)])
 
-    bar = tqdm(total=len(nodes), desc="curate", unit="chunk", disable=not progress)
     link = _dashboard_link()
-    if link:
-        logger.info("Dask dashboard: %s", link)
+    logger.info("Dask dashboard: %s", link)
+    if progress:
+        tqdm.write(f"Dask dashboard: {link or '(not available)'}")
+    bar = tqdm(total=len(nodes), desc="curate", unit="chunk", disable=not progress)
     try:
         result = run_dag(nodes, lambda stage: stage_version_params(config, stage), lambda nid: _stored(stored, nid), submit, complete, prefail, on_record, bar.update)
     finally:

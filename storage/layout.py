@@ -175,3 +175,70 @@ def arrays_for(stage: str, has_object: bool, has_gt: bool) -> tuple[ArraySpec, .
 def chunk_ranges(n_frames: int, frames_per_chunk: int) -> list[tuple[int, int]]:
     """Frame ranges of the chunks of a clip: the unit of one task and of one writer."""
     return [(s, min(s + frames_per_chunk, n_frames)) for s in range(0, n_frames, frames_per_chunk)]
+
+
+# ----------------------------------------------------------------------------- benchmark
+# A benchmark folder (test set, predictions, metric results, reports) is plain files,
+# because the authors' evaluation toolkit reads PNG paths from a JSONL manifest::
+#
+#     <bench>/testset.json                          meta: tracks, items, source store, bank
+#     <bench>/manifest.jsonl                        the toolkit manifest (pred_path empty)
+#     <bench>/items/<item>/{src,gt}.png             source image, pseudo-GT
+#     <bench>/items/<item>/{human,robot,test,object}_mask.png
+#     <bench>/refs/<embodiment>/{view,mask}_<v>.png reference views + masks
+#     <bench>/predictions/<editor>/<item>.png       an editor's outputs
+#     <bench>/predictions/<editor>/records.jsonl    one record per attempt-finished item
+#     <bench>/results/<editor>/items.csv            per-item metrics and errors
+#     <bench>/results/<editor>/summary.json         per-track means, FID, skipped metrics
+#     <bench>/vlm_cache/<sha256>.json               judge answers by content hash
+#     <bench>/report/                               tables (md, tex, csv), radar PNGs
+
+BENCH_META = "testset.json"
+BENCH_MANIFEST = "manifest.jsonl"
+BENCH_ITEM_FILES = {
+    "src": "src.png", "gt": "gt.png", "human_mask": "human_mask.png", "robot_mask": "robot_mask.png",
+    "test_mask": "test_mask.png", "object_mask": "object_mask.png",
+}
+TRACKS = {"hand": "hand-only", "hand_arm": "hand-arm"}  # scope -> track name
+
+
+def bench_item_dir(item_id: str) -> str:
+    if not item_id or "/" in item_id or item_id.startswith("."):
+        raise ValueError(f"invalid benchmark item id {item_id!r}")
+    return f"items/{item_id}"
+
+
+def bench_ref_paths(embodiment: str, view: int) -> tuple[str, str]:
+    return f"refs/{embodiment}/view_{view:02d}.png", f"refs/{embodiment}/mask_{view:02d}.png"
+
+
+def bench_prediction_dir(editor: str) -> str:
+    if not editor or "/" in editor or editor.startswith("."):
+        raise ValueError(f"invalid editor name {editor!r}: letters, digits, '-', '_', '.'")
+    return f"predictions/{editor}"
+
+
+def bench_results_dir(editor: str) -> str:
+    return f"results/{bench_prediction_dir(editor).split('/', 1)[1]}"
+
+
+BENCH_VLM_CACHE = "vlm_cache"
+BENCH_REPORT = "report"
+
+
+# ---- reference bank (handedit bank build; read by the benchmark) ----------------------------
+# A separate store (not a curate store):
+#     <bank>.zarr/                      attrs: bank_schema, views, width, height, seed, rig
+#       embodiments/<emb>/              attrs: name, track, description (frozen, verbatim), urdf
+#         rgb   (V,H,W,3) uint8         canonical views, black where the robot is not
+#         mask  (V,H,W)   bool          robot silhouettes
+#         camera_from_root (V,4,4) float64, qpos (V,dof) float32, K (3,3) float64
+BANK_SCHEMA_VERSION = 1
+BANK_GROUP = "embodiments"
+BANK_ARRAYS: tuple[str, ...] = ("rgb", "mask", "camera_from_root", "qpos", "K")
+
+
+def bank_embodiment_path(embodiment_id: str) -> str:
+    if not embodiment_id or "/" in embodiment_id or embodiment_id.startswith("."):
+        raise ValueError(f"invalid embodiment id {embodiment_id!r}")
+    return f"{BANK_GROUP}/{embodiment_id}"

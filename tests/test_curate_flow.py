@@ -166,3 +166,19 @@ def test_fault_in_one_clip_and_corrupt_source_leave_the_rest_complete(tmp_path, 
     assert fixed["stages"]["retarget"]["ran"] == 0 and fixed["stages"]["ingest"]["ran"] == 0
     root = open_store(config.out)
     assert (root[Unit("qc", "synthetic-0001", embodiment=EMB).path]["status"][:] != Reason.UPSTREAM).any()
+
+
+def test_missing_assets_reject_only_that_embodiment(tmp_path, monkeypatch, prefect_api, dask_cluster):
+    monkeypatch.delenv("HANDEDIT_ASSET_DIRS", raising=False)  # shadow ships only with dex-urdf assets
+    clip = make_clip_specs(1, seed=5, n_frames=F, width=W, height=H)
+    config = make_config(tmp_path / "handedit.zarr", dask_cluster, clips=clip).model_copy(
+        update={"embodiments": [EMB, "shadow"]})
+    summary = run_curate(config)
+    root = open_store(config.out)
+    ledger = read_ledger(root)
+    missing = ledger[ledger["embodiment"] == "shadow"]
+    assert set(missing["reason_name"]) == {"ASSETS_MISSING"} and sorted(missing["frame"]) == list(range(F))
+    assert "HANDEDIT_ASSET_DIRS" in missing["detail"].iloc[0] or "shadow" in missing["detail"].iloc[0]
+    assert (root[Unit("qc", clip[0].clip_id, embodiment="shadow").path]["status"][:] == Reason.UPSTREAM).all()
+    assert (root[Unit("qc", clip[0].clip_id, embodiment=EMB).path]["status"][:] == Reason.OK).any()
+    assert summary["stages"]["retarget"]["failed"] == 1

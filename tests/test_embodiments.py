@@ -36,14 +36,60 @@ def assets(monkeypatch, robots_dir: Path) -> Path:
 
 def test_roster_ids_and_fields():
     ids = [e.id for e in list_embodiments()]
-    assert set(HAND_IDS) <= set(ids) and len(ids) == len(set(ids))
+    assert set(HAND_IDS) <= set(ids) and len(ids) == len(set(ids)) == 26
     assert get_embodiment("inspire").name == "RH56DFX"
     assert get_embodiment("schunk_svh").name == "Schunk SVH"
+    tracks = [e.track for e in list_embodiments()]
+    assert tracks.count("hand") == 13 and tracks.count("hand_arm") == 13
     for e in list_embodiments():
-        assert e.track == "hand" and e.arm is None
+        assert (e.track == "hand") == (e.arm is None)
         assert e.description.startswith("A ") and e.description.endswith(".")
         for pattern in e.materials:
             re.compile(pattern)
+
+
+def _paper_rows(shared_dir: Path, macro: str) -> dict[str, str]:
+    tex = (shared_dir / "paper" / "handedit.tex").read_text()
+    return {m.group(1): " ".join(m.group(2).split()) for m in re.finditer(r"\\" + macro + r"\{([^}]*)\}\{ \}\{([^}]*)\}", tex)}
+
+
+def test_names_and_descriptions_verbatim_from_paper(shared_dir):
+    """The paper's reference bank is the spec: same display names, descriptions word for word."""
+    hands, arms = _paper_rows(shared_dir, "handbankrow"), _paper_rows(shared_dir, "armbankrow")
+    assert len(hands) == 13 and len(arms) == 13
+    ours = {e.name: e for e in list_embodiments()}
+    assert set(ours) == set(hands) | set(arms)
+    for name, text in {**hands, **arms}.items():
+        e = ours[name]
+        assert e.track == ("hand" if name in hands else "hand_arm")
+        assert e.description == text, name
+
+
+def test_missing_assets_name_what_to_provide(assets):
+    from handedit.embodiments import asset_status
+
+    ok, msg = asset_status(get_embodiment("wuji"))
+    assert not ok and "hands/wuji_hand/wuji_hand_right.urdf" in msg and "HANDEDIT_ASSET_DIRS" in msg
+    with pytest.raises(AssetsMissing, match="wuji_hand_right.urdf"):
+        describe_embodiment("ur5_wuji")
+    available = [e.id for e in list_embodiments() if asset_status(e)[0]]
+    assert set(HAND_IDS) <= set(available)
+    assert {"ur5_shadow", "xarm_ability", "xarm_leap", "panda_allegro", "ur5_inspire", "ur5_schunk_svh"} <= set(available)
+
+
+def test_hand_arm_describe_arm_joints_first(assets):
+    track, joints = describe_embodiment("xarm_ability")
+    assert track == "hand_arm"
+    assert joints[:7] == [f"joint{i}" for i in range(1, 8)] and joints[7:] == describe_embodiment("ability")[1]
+
+
+def test_hand_arm_materials_keep_hand_colours_off_the_arm(assets):
+    from handedit.embodiments import render_materials
+
+    mats = render_materials(get_embodiment("xarm_leap"))
+    hand = get_embodiment("leap")
+    assert mats[re.escape("fingertip")] == hand.link_color("fingertip")
+    assert all(not re.fullmatch(p, "link3") for p in mats), "xArm links keep their URDF colours"
 
 
 def test_unknown_id_lists_known():

@@ -78,3 +78,34 @@ def test_unknown_link_is_clear(robots_dir):
     kin = get_kinematics(robots_dir / "hands/leap_hand/leap_hand_right.urdf")
     with pytest.raises(KeyError, match="not_a_link"):
         kin.fk_function("not_a_link")
+
+
+def _package_urdfs() -> list[Path]:
+    """The example-robot-data URDFs the roster uses (Allegro, Panda, UR5, xArm7)."""
+    from handedit.embodiments import roster
+
+    out = []
+    for a in (roster._ALLEGRO_ERD, roster._PANDA_ERD, roster._UR5_ERD, roster._XARM7_ERD):
+        p = roster._package_file(a.package, a.path)
+        assert p is not None, f"{a.package} does not ship {a.path}"
+        out.append(p)
+    return out
+
+
+def test_fk_matches_yourdfpy_arms_and_assemblies(robots_dir):
+    urdfs = sorted((robots_dir / "arms").glob("*/*.urdf")) + sorted((robots_dir / "assembly").glob("*/*.urdf"))
+    assert len(urdfs) == 7
+    for path in urdfs:
+        _check_fk(path, n=2)
+
+
+def test_fk_matches_yourdfpy_packaged_robots():
+    for path in _package_urdfs():
+        _check_fk(path, n=2)
+
+
+def test_chain_runs_root_to_link(robots_dir):
+    kin = get_kinematics(robots_dir / "arms/xarm7/xarm7_glb.urdf")
+    chain = kin.chain("link7")
+    assert chain[0].parent == kin.base_link and chain[-1].child == "link7"
+    assert [j.name for j in chain if j.q_index >= 0] == [f"joint{i}" for i in range(1, 8)]

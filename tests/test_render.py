@@ -241,3 +241,35 @@ def test_render_embodiment_uses_roster(robots_dir, monkeypatch):
     res = render_embodiment("allegro", q[None], T[None], INTR)
     assert res.mask.sum() > 0.03 * W * H
     np.testing.assert_array_equal(res.rgba, r.render(q[None], T[None], INTR).rgba)
+
+
+HAND_ARMS = ["panda_allegro", "ur5_inspire", "ur5_schunk_svh", "ur5_shadow", "xarm_ability", "xarm_leap"]
+
+
+@pytest.mark.parametrize("emb_id", HAND_ARMS + ["leap"])
+def test_embodiment_render_contains_projected_fk_links(robots_dir, monkeypatch, emb_id):
+    """Every available hand-arm (composed URDF, roster colours) renders inside the image and the
+    casadi-FK positions of its visual links project onto the rendered silhouette."""
+    from handedit.embodiments import get_embodiment, resolve_urdf
+    from handedit.embodiments.kinematics import get_kinematics
+    from handedit.render import embodiment_renderer
+    from handedit.render.views import canonical_views
+
+    monkeypatch.setenv("HANDEDIT_ASSET_DIRS", str(robots_dir))
+    r = embodiment_renderer(emb_id, W, H)
+    rig = canonical_views(r, 1)
+    res = r.render(rig.qpos, rig.camera_from_root, rig.intrinsics)
+    mask = res.mask[0]
+    assert mask.sum() > 0.01 * W * H
+    assert not np.concatenate([mask[0], mask[-1], mask[:, 0], mask[:, -1]]).any()
+    kin = get_kinematics(resolve_urdf(get_embodiment(emb_id)))
+    T = rig.camera_from_root[0]
+    links = r.model.links
+    pts = np.array([(T @ kin.fk(rig.qpos[0], l))[:3, 3] for l in links])
+    uv = np.round(project(pts, rig.intrinsics)).astype(int)
+    grown = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    off = [l for l, (u, v) in zip(links, uv) if not (0 <= u < W and 0 <= v < H and grown[v, u])]
+    assert len(off) <= 0.1 * len(links), f"link origins off the silhouette: {off}"
+    if get_embodiment(emb_id).arm is not None:
+        arm_links = [l for l in links if l in kin.link_names and l not in set(kin.chain(links[0]) and [])]
+        assert len(arm_links) > 0

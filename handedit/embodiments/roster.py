@@ -79,13 +79,49 @@ class HandSpec:
 
 
 @dataclass(frozen=True)
-class ArmSpec:
-    """The arm of a hand-arm embodiment (filled in by the hand-arm issue)."""
+class ArmAsset:
+    """One candidate URDF of an arm (same ``source``/``path``/``package`` rules as UrdfAsset).
 
-    assets: tuple[UrdfAsset, ...]
+    ``ee_link`` carries the hand; ``ee_from_tool`` (4x4) places the tool frame (z out of the
+    flange) in it; ``drop_links`` are subtrees removed before mounting (a stock gripper);
+    ``mounts`` are exact ee_from_hand_root overrides keyed by the hand asset's ``path``
+    (the dex-urdf ``assembly/`` values). See handedit.embodiments.compose.
+    """
+
+    source: Literal["asset_dir", "package"]
+    path: str
     ee_link: str
-    ee_from_hand_root: tuple[tuple[float, ...], ...]  # 4x4 mount transform, row-major
-    nominal_reach_m: float
+    package: str = ""
+    ee_from_tool: tuple[tuple[float, ...], ...] = ((1, 0, 0, 0), (0, 1, 0, 0), (0, 0, 1, 0), (0, 0, 0, 1))
+    drop_links: tuple[str, ...] = ()
+    mounts: tuple[tuple[str, tuple[tuple[float, ...], ...]], ...] = ()
+
+    @property
+    def ee_from_tool_matrix(self) -> np.ndarray:
+        return np.asarray(self.ee_from_tool, dtype=float).reshape(4, 4)
+
+
+@dataclass(frozen=True)
+class ArmSpec:
+    """The arm of a hand-arm embodiment: URDF candidates, how the hand's wrist sits on the
+    tool frame, render colours of arm links (empty: keep the URDF's own) and, optionally, a
+    fixed nominal reach (None: computed from the chain by compose.nominal_reach)."""
+
+    name: str
+    assets: tuple[ArmAsset, ...]
+    tool_from_wrist: tuple[tuple[float, ...], ...] = ((1, 0, 0, 0), (0, 1, 0, 0), (0, 0, 1, 0.02), (0, 0, 0, 1))
+    materials: dict[str, RGBA] = field(default_factory=dict, hash=False)
+    nominal_reach_m: float | None = None
+
+    @property
+    def tool_from_wrist_matrix(self) -> np.ndarray:
+        return np.asarray(self.tool_from_wrist, dtype=float).reshape(4, 4)
+
+    def link_color(self, link_name: str) -> RGBA | None:
+        for pattern, rgba in self.materials.items():
+            if re.fullmatch(pattern, link_name):
+                return rgba
+        return None
 
 
 @dataclass(frozen=True)
@@ -143,6 +179,8 @@ BLACK: RGBA = (0.08, 0.08, 0.09, 1.0)
 DARK: RGBA = (0.15, 0.15, 0.16, 1.0)
 GRAY: RGBA = (0.55, 0.56, 0.58, 1.0)
 SILVER: RGBA = (0.75, 0.76, 0.78, 1.0)
+MATTE_GRAY: RGBA = (0.50, 0.51, 0.52, 1.0)
+GREEN: RGBA = (0.20, 0.85, 0.25, 1.0)
 
 # wrist_from_root values are calibrated by handedit.retarget.palm.calibrate_wrist_from_root
 # at the robot's neutral pose (tests/test_embodiments.py checks they stay consistent).
@@ -247,7 +285,62 @@ _SCHUNK = UrdfAsset(
     wrist_from_root=_T([[0.99255, -0.02843, 0.11847, 0.0], [0.02823, 0.9996, 0.00337, 0.0], [-0.11852, 0.0, 0.99295, 0.0], [0, 0, 0, 1]]),
 )
 
-_ROSTER: tuple[Embodiment, ...] = (
+# Hands with no public URDF reachable here (no dex-urdf folder, no PyPI package we depend on):
+# the expected dex-urdf-layout path is what a user provides under $HANDEDIT_ASSET_DIRS.
+# Their MANO correspondences and wrist calibration are added with the asset (``keypoints=()``
+# marks an embodiment whose URDF may be found but is not yet supported).
+_IDENTITY = _T(np.eye(4))
+
+
+def _expected_hand(folder: str, file: str) -> UrdfAsset:
+    return UrdfAsset(source="asset_dir", path=f"hands/{folder}/{file}", keypoints=(), wrist_from_root=_IDENTITY)
+
+
+_REVO2 = _expected_hand("revo2_hand", "revo2_hand_right.urdf")  # BrainCo Revo2
+_DEXHAND021 = _expected_hand("dexhand021", "dexhand021_right.urdf")
+# OrcaHand v2 ships inside the PyPI package ``orca-arm`` (bimanual OpenArm, no licence
+# metadata, 137 MB installed): not a dependency; provide a stand-alone right-hand URDF instead.
+_ORCA = _expected_hand("orca_hand", "orca_hand_right.urdf")
+_RH5DG2 = _expected_hand("inspire_rh5dg2", "rh5dg2_right.urdf")
+_ROHAND = _expected_hand("rohand", "rohand_right.urdf")
+_SHARPA = _expected_hand("sharpa_hand", "sharpa_hand_right.urdf")
+_WUJI = _expected_hand("wuji_hand", "wuji_hand_right.urdf")
+
+# ---- arms ------------------------------------------------------------------------------
+_ERD = "cmeel.prefix/share/example-robot-data/robots/"
+# Exact mounts of the dex-urdf assemblies (ee_from_hand_root; tests compare FK with assembly/*).
+_MOUNT_UR5E_SHADOW = _T([[6.326794896668469e-06, 0.9999999999799859, 0.0, 0.0],
+                         [-0.9999999999799858, 6.326794896668469e-06, 0.0, 0.0], [0, 0, 1, -0.01], [0, 0, 0, 1]])
+_MOUNT_XARM7_ABILITY = _T([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0.018], [0, 0, 0, 1]])
+_MOUNT_RM75_INSPIRE = _IDENTITY
+
+_UR5E_DEX = ArmAsset(source="asset_dir", path="arms/ur5e/ur5e_glb.urdf", ee_link="wrist_3_link",
+                     mounts=((_SHADOW.path, _MOUNT_UR5E_SHADOW),))
+_UR5_ERD = ArmAsset(source="package", package="example-robot-data", path=_ERD + "ur_description/urdf/ur5_robot.urdf",
+                    ee_link="tool0")
+_XARM7_DEX = ArmAsset(source="asset_dir", path="arms/xarm7/xarm7_glb.urdf", ee_link="link7",
+                      mounts=((_ABILITY.path, _MOUNT_XARM7_ABILITY),))
+_XARM7_ERD = ArmAsset(source="package", package="example-robot-data", path=_ERD + "xarm_description/urdf/xarm7.urdf",
+                      ee_link="link7", mounts=((_ABILITY.path, _MOUNT_XARM7_ABILITY),))
+_RM75_DEX = ArmAsset(source="asset_dir", path="arms/rm75/rm75_glb.urdf", ee_link="rm75_link_7",
+                     mounts=((_INSPIRE.path, _MOUNT_RM75_INSPIRE),))
+_IIWA7_DEX = ArmAsset(source="asset_dir", path="arms/iiwa7/iiwa7_glb.urdf", ee_link="link_7",
+                      ee_from_tool=_T([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0.035], [0, 0, 0, 1]]))
+# Panda without its stock Franka gripper (the hand replaces it); panda_link8 is the flange.
+_PANDA_ERD = ArmAsset(source="package", package="example-robot-data", path=_ERD + "panda_description/urdf/panda.urdf",
+                      ee_link="panda_link8", drop_links=("panda_hand",))
+_JAKA_ZU7 = ArmAsset(source="asset_dir", path="arms/jaka_zu7/jaka_zu7.urdf", ee_link="")
+_RM65 = ArmAsset(source="asset_dir", path="arms/rm65/rm65.urdf", ee_link="")
+
+UR5 = ArmSpec(name="UR5", assets=(_UR5E_DEX, _UR5_ERD))
+XARM = ArmSpec(name="xArm", assets=(_XARM7_DEX, _XARM7_ERD))
+RM75 = ArmSpec(name="RM75", assets=(_RM75_DEX,))
+KUKA = ArmSpec(name="KUKA", assets=(_IIWA7_DEX,))
+PANDA = ArmSpec(name="Panda", assets=(_PANDA_ERD,))
+JAKA = ArmSpec(name="Jaka Zu7", assets=(_JAKA_ZU7,))
+RM65 = ArmSpec(name="RM65", assets=(_RM65,))
+
+_HANDS: tuple[Embodiment, ...] = (
     Embodiment(
         id="allegro",
         name="Allegro",
@@ -320,7 +413,258 @@ _ROSTER: tuple[Embodiment, ...] = (
         hand=HandSpec(assets=(_SCHUNK,)),
         materials={r"right_hand_(c|t|s|r|q)|.*tip": GRAY, r"right_hand_e[12]": DARK, r".*": WHITE},
     ),
+    Embodiment(
+        id="dexhand021",
+        name="DexHand021",
+        track="hand",
+        description=(
+            "A metallic dexterous hand with dense exposed mechanisms, a ribbed silver palm surface, and "
+            "articulated fingers composed of visible links and cable-like structures. Bright green fingertip "
+            "markers make the hand visually distinctive and strongly mechanical."
+        ),
+        hand=HandSpec(assets=(_DEXHAND021,)),
+        materials={r".*tip.*": GREEN, r".*": SILVER},
+    ),
+    Embodiment(
+        id="orca",
+        name="OrcaHand",
+        track="hand",
+        description=(
+            "A dark robotic hand with a narrow palm and five slender fingers spread in a fan-like "
+            "configuration. Alternating dark segments and bright fingertip caps create an open, lightweight, "
+            "highly splayed silhouette."
+        ),
+        hand=HandSpec(assets=(_ORCA,)),
+        materials={r".*(tip|Tip).*": WHITE, r".*": DARK},
+    ),
+    Embodiment(
+        id="revo2",
+        name="Revo2",
+        track="hand",
+        description=(
+            "A smooth anthropomorphic robotic hand with a rounded human-like palm, slim fingers, and softly "
+            "curved matte-gray surfaces. The design has limited exposed mechanics and a naturalistic silhouette."
+        ),
+        hand=HandSpec(assets=(_REVO2,)),
+        materials={r".*": MATTE_GRAY},
+    ),
+    Embodiment(
+        id="rh5dg2",
+        name="RH5DG2",
+        track="hand",
+        description=(
+            "A white-and-gray robotic hand with a rounded palm shell, dark cylindrical finger coverings, and "
+            "a thick side thumb aligned close to the palm plane. It has an enclosed appearance with little "
+            "exposed structure."
+        ),
+        hand=HandSpec(assets=(_RH5DG2,)),
+        materials={r".*(base|palm).*": WHITE, r".*": DARK},
+    ),
+    Embodiment(
+        id="rohand",
+        name="RoHand",
+        track="hand",
+        description=(
+            "A white robotic hand with a smooth enclosed palm shell, dark metallic finger segments, and a "
+            "side-mounted thumb. Elongated anthropomorphic fingers and a compact rounded wrist base give it "
+            "a polished integrated appearance."
+        ),
+        hand=HandSpec(assets=(_ROHAND,)),
+        materials={r".*(base|palm).*": WHITE, r".*": DARK},
+    ),
+    Embodiment(
+        id="sharpa",
+        name="Sharpa",
+        track="hand",
+        description=(
+            "A matte gray robotic hand with a clean anthropomorphic silhouette, smooth palm surfaces, and "
+            "simple segmented fingers. The large articulated thumb contrasts with the otherwise minimal "
+            "enclosed design."
+        ),
+        hand=HandSpec(assets=(_SHARPA,)),
+        materials={r".*": MATTE_GRAY},
+    ),
+    Embodiment(
+        id="wuji",
+        name="Wuji",
+        track="hand",
+        description=(
+            "A black-and-silver robotic hand with a glossy dark palm base, long light-gray articulated "
+            "fingers made of segmented cylindrical links, and a widely extended side thumb."
+        ),
+        hand=HandSpec(assets=(_WUJI,)),
+        materials={r".*(base|palm).*": BLACK, r".*": SILVER},
+    ),
 )
+_HAND_COLOURS = {e.id: e.materials for e in _HANDS}
+_ARMS: tuple[Embodiment, ...] = (
+    Embodiment(
+        id="jaka_zu7_dexhand021",
+        name="Jaka Zu7 + DexHand021",
+        track="hand_arm",
+        description=(
+            'A metallic-gray collaborative arm with blue circular joint caps, paired with a silver dexterous '
+            'hand with dense exposed mechanisms, a ribbed palm surface, and slender articulated fingers. The '
+            'transparent wrist housing and mechanical finger structure make it distinctive.'
+        ),
+        hand=HandSpec(assets=(_DEXHAND021,)),
+        arm=JAKA,
+        materials=_HAND_COLOURS["dexhand021"],
+    ),
+    Embodiment(
+        id="kuka_sharpa",
+        name="KUKA + Sharpa",
+        track="hand_arm",
+        description=(
+            'A white KUKA-style arm with bright orange accent panels, paired with a smooth anthropomorphic '
+            'hand. The clean enclosed hand silhouette contrasts with the strong white-orange arm styling.'
+        ),
+        hand=HandSpec(assets=(_SHARPA,)),
+        arm=KUKA,
+        materials=_HAND_COLOURS["sharpa"],
+    ),
+    Embodiment(
+        id="panda_allegro",
+        name="Panda + Allegro",
+        track="hand_arm",
+        description=(
+            'A light Panda-style arm paired with a compact dark modular hand. The boxy palm, rectangular '
+            'segmented fingers, and bright fingertip caps create a sharp contrast with the soft industrial '
+            'arm.'
+        ),
+        hand=HandSpec(assets=(_ALLEGRO_DEX, _ALLEGRO_ERD)),
+        arm=PANDA,
+        materials=_HAND_COLOURS["allegro"],
+    ),
+    Embodiment(
+        id="panda_orca",
+        name="Panda + Orca",
+        track="hand_arm",
+        description=(
+            'A light Panda-style arm attached to a dark hand with a narrow palm and strongly spread fingers. '
+            'Long separated digits with bright caps create an open fan-like silhouette.'
+        ),
+        hand=HandSpec(assets=(_ORCA,)),
+        arm=PANDA,
+        materials=_HAND_COLOURS["orca"],
+    ),
+    Embodiment(
+        id="rm65_brainco",
+        name="RM65 + BrainCo",
+        track="hand_arm",
+        description=(
+            'A smooth white arm paired with a compact anthropomorphic hand with a rounded palm shell, slim '
+            'fingers, and a clean enclosed structure. The embodiment appears polished and tightly integrated.'
+        ),
+        hand=HandSpec(assets=(_REVO2,)),
+        arm=RM65,
+        materials=_HAND_COLOURS["revo2"],
+    ),
+    Embodiment(
+        id="rm75_rohand",
+        name="RM75 + RoHand",
+        track="hand_arm",
+        description=(
+            'A smooth white RM75-style arm with curved segmented links and rounded joint housings, paired '
+            'with a white enclosed RoHand with dark finger segments and a side-mounted thumb.'
+        ),
+        hand=HandSpec(assets=(_ROHAND,)),
+        arm=RM75,
+        materials=_HAND_COLOURS["rohand"],
+    ),
+    Embodiment(
+        id="ur5_inspire",
+        name="UR5 + RH56DFX",
+        track="hand_arm",
+        description=(
+            'A metallic-gray industrial arm with rounded cylindrical links and blue joint caps, ending in a '
+            'white-and-silver dexterous hand with a sculpted palm shell, dark finger pads, and a large side '
+            'thumb.'
+        ),
+        hand=HandSpec(assets=(_INSPIRE,)),
+        arm=UR5,
+        materials=_HAND_COLOURS["inspire"],
+    ),
+    Embodiment(
+        id="ur5_rh5dg2",
+        name="UR5 + RH5DG2",
+        track="hand_arm",
+        description=(
+            'A metallic-gray UR5-style arm with blue circular joint caps, attached to a white-and-gray hand '
+            'with a rounded palm shell, dark cylindrical finger coverings, and a thick side thumb close to '
+            'the palm plane.'
+        ),
+        hand=HandSpec(assets=(_RH5DG2,)),
+        arm=UR5,
+        materials=_HAND_COLOURS["rh5dg2"],
+    ),
+    Embodiment(
+        id="ur5_schunk_svh",
+        name="UR5 + Schunk Hand",
+        track="hand_arm",
+        description=(
+            'A metallic-gray arm with blue round joint covers, paired with a robust white industrial hand. A '
+            'broad palm, thick segmented fingers, gray fingertip pads, and heavy thumb create a sturdy '
+            'precision-oriented look.'
+        ),
+        hand=HandSpec(assets=(_SCHUNK,)),
+        arm=UR5,
+        materials=_HAND_COLOURS["schunk_svh"],
+    ),
+    Embodiment(
+        id="ur5_shadow",
+        name="UR5 + Shadow Hand",
+        track="hand_arm",
+        description=(
+            'A metallic-gray arm with blue circular joints, attached to a dark anthropomorphic hand with slim'
+            ' multi-joint fingers and bright fingertip caps. The hand is lightweight and human-like relative '
+            'to the heavier arm.'
+        ),
+        hand=HandSpec(assets=(_SHADOW,)),
+        arm=UR5,
+        materials=_HAND_COLOURS["shadow"],
+    ),
+    Embodiment(
+        id="ur5_wuji",
+        name="UR5 + Wuji",
+        track="hand_arm",
+        description=(
+            'A metallic-gray arm with blue circular joint caps, ending in a slim dexterous hand with long '
+            'narrow fingers and a thin side thumb. The hand appears lighter and more elongated than other '
+            'UR5-based embodiments.'
+        ),
+        hand=HandSpec(assets=(_WUJI,)),
+        arm=UR5,
+        materials=_HAND_COLOURS["wuji"],
+    ),
+    Embodiment(
+        id="xarm_ability",
+        name="xArm + Ability",
+        track="hand_arm",
+        description=(
+            'A white arm with smooth enclosed links, paired with a compact white hand with a rounded palm '
+            'shell, dark finger coverings, and a thick side thumb. The embodiment is soft-contoured and '
+            'highly enclosed.'
+        ),
+        hand=HandSpec(assets=(_ABILITY,)),
+        arm=XARM,
+        materials=_HAND_COLOURS["ability"],
+    ),
+    Embodiment(
+        id="xarm_leap",
+        name="xArm + Leap",
+        track="hand_arm",
+        description=(
+            'A white arm with smooth rounded links, attached to a compact low-profile robotic hand with a '
+            'blocky palm and modular fingers. Stacked box-like segments and bright caps give it a clean '
+            'geometric appearance.'
+        ),
+        hand=HandSpec(assets=(_LEAP,)),
+        arm=XARM,
+        materials=_HAND_COLOURS["leap"],
+    ),
+)
+_ROSTER: tuple[Embodiment, ...] = _HANDS + _ARMS
 _BY_ID = {e.id: e for e in _ROSTER}
 
 
@@ -351,44 +695,115 @@ def _package_file(dist_name: str, rel: str) -> Path | None:
     return p if p.is_file() else None
 
 
-def resolve_asset(emb: Embodiment, spec: HandSpec | ArmSpec | None = None) -> ResolvedAsset:
-    """First existing URDF candidate of ``emb`` (its hand by default); see module doc for order."""
-    spec = spec or emb.hand
+def _search(spec_assets, what: str, emb: Embodiment):
+    """First existing candidate (asset dirs, then packages) or AssetsMissing naming what to provide."""
     dirs = asset_dirs()
-    for a in spec.assets:
+    for a in spec_assets:
         if a.source == "asset_dir":
             for d in dirs:
                 if (d / a.path).is_file():
-                    return ResolvedAsset((d / a.path).resolve(), a)
-    for a in spec.assets:
+                    return (d / a.path).resolve(), a
+    for a in spec_assets:
         if a.source == "package":
             p = _package_file(a.package, a.path)
             if p is not None:
-                return ResolvedAsset(p.resolve(), a)
+                return p.resolve(), a
     wanted = []
-    for a in spec.assets:
+    for a in spec_assets:
         if a.source == "asset_dir":
-            wanted.append(f"'{a.path}' under a dex-urdf directory listed in ${ASSET_DIRS_ENV}")
+            wanted.append(f"'{a.path}' (with its meshes) under a dex-urdf-layout directory listed in ${ASSET_DIRS_ENV}")
         else:
             wanted.append(f"the PyPI package '{a.package}' (pip install {a.package})")
     env = os.environ.get(ASSET_DIRS_ENV)
     raise AssetsMissing(
-        f"no URDF found for embodiment '{emb.id}' ({emb.name}). Provide "
+        f"no {what} URDF found for embodiment '{emb.id}' ({emb.name}). Provide "
         + " or ".join(wanted)
         + f". ${ASSET_DIRS_ENV} is currently {env!r} (searched: {[str(d) for d in dirs]}); "
-        "point it (os.pathsep-separated) at a checkout of https://github.com/dexsuite/dex-urdf "
-        "(the folder that holds hands/, arms/, assembly/)."
+        "point it (os.pathsep-separated) at a folder in dex-urdf layout (hands/, arms/, assembly/), "
+        "e.g. a checkout of https://github.com/dexsuite/dex-urdf."
     )
 
 
+def resolve_asset(emb: Embodiment, spec: HandSpec | None = None) -> ResolvedAsset:
+    """First existing hand URDF candidate of ``emb`` (hand-arm: its hand); see module doc for order."""
+    path, asset = _search((spec or emb.hand).assets, "hand", emb)
+    if not asset.keypoints:
+        raise AssetsMissing(
+            f"embodiment '{emb.id}' ({emb.name}): found {path}, but handedit has no MANO correspondences "
+            f"or wrist calibration for it yet; add them to handedit/embodiments/roster.py (UrdfAsset.keypoints, "
+            f"wrist_from_root via handedit.retarget.palm.calibrate_wrist_from_root)."
+        )
+    return ResolvedAsset(path, asset)
+
+
+@dataclass(frozen=True)
+class ResolvedArm:
+    path: Path
+    asset: ArmAsset
+
+
+def resolve_arm(emb: Embodiment) -> ResolvedArm:
+    """First existing arm URDF candidate of a hand-arm embodiment."""
+    if emb.arm is None:
+        raise EmbodimentError(f"embodiment '{emb.id}' is hand-only; it has no arm")
+    path, asset = _search(emb.arm.assets, f"arm ({emb.arm.name})", emb)
+    if not asset.ee_link:
+        raise AssetsMissing(
+            f"embodiment '{emb.id}': found arm URDF {path}, but its flange link and tool frame are not "
+            f"defined yet; set ArmAsset.ee_link / ee_from_tool in handedit/embodiments/roster.py."
+        )
+    return ResolvedArm(path, asset)
+
+
 def resolve_urdf(emb: Embodiment) -> Path:
-    """Path of the embodiment's URDF (raises ``AssetsMissing`` naming what to provide)."""
-    return resolve_asset(emb).path
+    """Path of the embodiment's URDF: the hand's, or for hand-arm embodiments the composed
+    arm+hand URDF (handedit.embodiments.compose). Raises ``AssetsMissing`` naming what to provide."""
+    if emb.arm is None:
+        return resolve_asset(emb).path
+    from handedit.embodiments.compose import compose_embodiment
+
+    return compose_embodiment(emb.id).urdf_path
+
+
+def asset_status(emb: Embodiment) -> tuple[bool, str]:
+    """(available, where from or what is missing) without loading meshes."""
+    try:
+        hand = resolve_asset(emb)
+        src = hand.asset.package if hand.asset.source == "package" else str(hand.path.parent)
+        if emb.arm is not None:
+            arm = resolve_arm(emb)
+            src = (arm.asset.package if arm.asset.source == "package" else str(arm.path.parent)) + " + " + src
+        return True, src
+    except EmbodimentError as e:
+        return False, str(e)
+
+
+def render_materials(emb: Embodiment, link_names: list[str] | None = None) -> dict[str, RGBA]:
+    """Render-time material overrides (link regex -> RGBA) for the URDF ``resolve_urdf`` returns.
+
+    Hand-only: ``emb.materials``. Hand-arm: explicit per-link colours, the hand's from
+    ``emb.materials`` on its original link names and the arm's from ``emb.arm.materials``
+    (arm links without a match keep their URDF colours), so the hand's catch-all patterns
+    never paint the arm.
+    """
+    if emb.arm is None:
+        return dict(emb.materials)
+    from handedit.embodiments.compose import compose_embodiment
+
+    c = compose_embodiment(emb.id)
+    hand_names = {v: k for k, v in c.link_map.items()}
+    out: dict[str, RGBA] = {}
+    for link in link_names if link_names is not None else c.kinematics().link_names:
+        rgba = emb.link_color(hand_names[link]) if link in hand_names else emb.arm.link_color(link)
+        if rgba is not None:
+            out[re.escape(link)] = rgba
+    return out
 
 
 def describe_embodiment(embodiment_id: str) -> tuple[str, list[str]]:
     """(track, qpos column names) of an embodiment; resolves and loads its URDF, so it
-    raises the same ``EmbodimentError``s a later stage would (unknown id, assets, URDF)."""
+    raises the same ``EmbodimentError``s a later stage would (unknown id, assets, URDF).
+    Hand-arm: arm joints first, then the hand's."""
     from handedit.embodiments.kinematics import get_kinematics
 
     emb = get_embodiment(embodiment_id)

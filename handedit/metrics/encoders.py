@@ -223,6 +223,18 @@ def load_encoders(model_dir: str | Path | None) -> Encoders:
     return enc
 
 
+def missing_encoders(model_dir: str | Path | None) -> dict[str, str]:
+    """Encoder -> why it is unavailable, from file presence only (cheap; for the driver)."""
+    folder = Path(model_dir) if model_dir else None
+    out = {}
+    for name, spec in ENCODERS.items():
+        files = [spec.filename] + ([LPIPS_HEADS] if name == "lpips" else [])
+        absent = [f for f in files if folder is None or not (folder / f).is_file()]
+        if absent:
+            out[name] = f"{', '.join(str(folder / f) if folder else f for f in absent)} not found"
+    return out
+
+
 def cosine(a: np.ndarray, b: np.ndarray) -> float:
     a, b = np.asarray(a, np.float64).ravel(), np.asarray(b, np.float64).ravel()
     na, nb = np.linalg.norm(a), np.linalg.norm(b)

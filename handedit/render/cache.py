@@ -51,19 +51,35 @@ def clear_renderers() -> None:
         r.close()
 
 
+def embodiment_renderer(
+    embodiment_id: str,
+    width: int,
+    height: int,
+    decimate: float | None = None,
+    materials: dict | None = None,
+) -> RobotRenderer:
+    """This thread's cached renderer of a registered embodiment (hand-arm: the composed URDF).
+
+    Colours: the roster's (``embodiments.render_materials``) unless ``materials`` (link regex ->
+    RGBA) overrides them; overrides are tried first, the roster's apply to the other links."""
+    from handedit import embodiments
+
+    emb = embodiments.get_embodiment(embodiment_id)
+    urdf_path = embodiments.resolve_urdf(emb)
+    merged = {**(materials or {}), **embodiments.render_materials(emb)}
+    key = tuple((k, tuple(v)) for k, v in merged.items()) if merged else None
+    return get_renderer(Path(urdf_path), width, height, key, decimate)
+
+
 def render_embodiment(
     embodiment_id: str,
     qpos: np.ndarray,
     root_pose: np.ndarray,
     intrinsics: Intrinsics,
     decimate: float | None = None,
+    materials: dict | None = None,
 ) -> RenderResult:
-    """Render a registered embodiment: URDF and materials come from ``handedit.embodiments``."""
-    from handedit import embodiments
-
-    emb = embodiments.get_embodiment(embodiment_id)
-    urdf_path = embodiments.resolve_urdf(emb)
-    materials = getattr(emb, "materials", None) or None
-    key = tuple((k, tuple(v)) for k, v in dict(materials).items()) if materials else None
-    renderer = get_renderer(Path(urdf_path), intrinsics.width, intrinsics.height, key, decimate)
+    """Render a registered embodiment: URDF and materials come from ``handedit.embodiments``;
+    ``root_pose`` is camera_from_root of the URDF root (hand-arm: the arm base)."""
+    renderer = embodiment_renderer(embodiment_id, intrinsics.width, intrinsics.height, decimate, materials)
     return renderer.render(qpos, root_pose, intrinsics)

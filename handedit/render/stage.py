@@ -15,9 +15,12 @@ from handedit.reasons import Reason
 class RenderConfig(BaseModel):
     """Render settings; ``decimate`` trades mesh detail for speed (bench/render.py)."""
 
-    VERSION: ClassVar[int] = 1
+    VERSION: ClassVar[int] = 2
     decimate: float | None = Field(None, gt=0.0, le=1.0, description="fraction of faces kept")
     min_visible_pixels: int = Field(20, ge=0, description="fewer robot pixels than this -> EMPTY_RENDER")
+    materials: dict[str, tuple[float, float, float, float]] | None = Field(
+        None, description="link regex -> display RGBA in [0,1], tried before the roster's colours"
+    )
 
 
 @dataclass
@@ -31,7 +34,7 @@ class RenderStageResult:
 def render_stage(embodiment_id: str, qpos: np.ndarray, root_pose: np.ndarray, intr: Intrinsics, cfg: RenderConfig) -> RenderStageResult:
     from handedit.render import render_embodiment  # deferred: pyrender/EGL only where rendering happens
 
-    out = render_embodiment(embodiment_id, qpos, root_pose, intr, decimate=cfg.decimate)
+    out = render_embodiment(embodiment_id, qpos, root_pose, intr, decimate=cfg.decimate, materials=cfg.materials)
     visible = (out.rgba[..., 3] > 0).reshape(len(qpos), -1).sum(axis=1)
     status = np.where(visible >= cfg.min_visible_pixels, Reason.OK, Reason.EMPTY_RENDER).astype(np.int16)
     method = f"pyrender:egl{'' if cfg.decimate is None else f':decimate={cfg.decimate}'}"

@@ -92,6 +92,10 @@ class ArmModel:
         self._chain_fn = ca.Function("chain", [qa], [ca.horzcat(*pts)])
         self._pose_fn = ca.Function("wrist", [qa], [p, R])
         self.moving = self._moving_points()
+        # support-plane points: moving arm links only (the hand sits where the human hand was,
+        # which may touch the table; its contact is checked by retargeting QC)
+        hand_links = set(self.hand_kin.link_names)
+        self.arm_points = self.moving & np.array([l not in hand_links for l in path] + [False])
 
         p_t, R_t, q_prev = ca.SX.sym("p_t", 3), ca.SX.sym("R_t", 3, 3), ca.SX.sym("q_prev", self.n)
         w_s = ca.SX.sym("w_s")

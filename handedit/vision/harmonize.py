@@ -9,6 +9,10 @@ transfer, which would also wash out the robot's own albedo, hence the default 0.
 Only pixels of the slightly dilated robot mask change, with a weight that fades to 0
 over the dilation band, so geometry (the silhouette and everything outside it) never
 moves.
+
+``method="onnx"`` with ``model_path`` runs a learned harmonizer instead
+(``handedit.models.harmonizer``: contract and export notes), blended in over the same
+dilated robot mask so geometry still never moves.
 """
 
 from __future__ import annotations
@@ -24,16 +28,24 @@ from handedit.reasons import STATUS_DTYPE, Reason
 
 
 class HarmonizeConfig(pydantic.BaseModel):
-    VERSION: ClassVar[int] = 1
+    VERSION: ClassVar[int] = 2
     model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
 
-    method: Literal["classical"] = "classical"
+    method: Literal["classical", "onnx"] = "classical"
+    model_path: str | None = None  # ONNX harmonizer (method="onnx"), see handedit.models.harmonizer
+    work_max_side: int = pydantic.Field(1024, ge=32)  # model input size when the model's is dynamic
     strength: float = pydantic.Field(0.35, ge=0.0, le=1.0)
     match_std: bool = True  # also move the spread (contrast), not just the mean
     std_ratio_limits: tuple[float, float] = (0.5, 2.0)  # clamp on the spread ratio
     ring_px: int = pydantic.Field(25, ge=1)  # width of the surrounding ring the statistics come from
     edge_px: int = pydantic.Field(2, ge=0)  # dilation of the robot mask; the weight fades over it
     min_ring_px: int = 50  # fewer ring pixels: fall back to the whole non-robot image
+
+    @pydantic.model_validator(mode="after")
+    def _model_needs_path(self) -> "HarmonizeConfig":
+        if self.method == "onnx" and not self.model_path:
+            raise ValueError("harmonize: method='onnx' needs model_path (an ONNX harmonizer)")
+        return self
 
 
 @dataclass
@@ -99,18 +111,24 @@ def harmonize_frame(image: np.ndarray, robot_mask: np.ndarray, cfg: HarmonizeCon
 
 def harmonize(image: np.ndarray, robot_mask: np.ndarray, cfg: HarmonizeConfig = HarmonizeConfig()) -> HarmonizeResult:
     """Harmonize composites (n,H,W,3) uint8 given visible robot masks (n,H,W) bool."""
-    if cfg.method != "classical":
-        raise ValueError(f"harmonize: unknown method {cfg.method!r}; this build has 'classical'")
     image = np.asarray(image)
     robot_mask = np.asarray(robot_mask, bool)
     if image.ndim != 4 or image.shape[-1] != 3 or robot_mask.shape != image.shape[:3]:
         raise ValueError(f"harmonize: image (n,H,W,3) and robot_mask (n,H,W); got {image.shape}, {robot_mask.shape}")
     out = image.copy()
     status = np.full(len(image), Reason.OK, STATUS_DTYPE)
+    model = None
+    if cfg.method == "onnx":
+        from handedit.models.harmonizer import harmonize_onnx_frame, load_harmonizer
+
+        model = load_harmonizer(cfg.model_path)
     for i in range(len(image)):
-        res = harmonize_frame(image[i], robot_mask[i], cfg)
+        if model is not None:
+            res = harmonize_onnx_frame(model, image[i], robot_mask[i], cfg) if robot_mask[i].any() else None
+        else:
+            res = harmonize_frame(image[i], robot_mask[i], cfg)
         if res is None:
             status[i] = Reason.EMPTY_RENDER
         else:
             out[i] = res
-    return HarmonizeResult(out, status, "classical:lab-stats-transfer")
+    return HarmonizeResult(out, status, f"onnx:harmonizer:{model.tag}" if model is not None else "classical:lab-stats-transfer")

@@ -10,8 +10,14 @@ corrected, and their unmasked pixels vote (per-pixel median when >= 3 frames saw
 pixel, else the temporally nearest one). Only what no frame saw is inpainted
 (OpenCV Telea by default, or the contrib ``xphoto`` FSR / shift-map inpainters).
 
-This is the classical stand-in for ProPainter (the paper's default); the ``method``
-field lets a learned video inpainter plug in later.
+This is the classical stand-in for ProPainter (the paper's default); ``method="onnx"``
+with ``model_path`` runs a learned video inpainter instead (``handedit.models.inpainter``
+documents its contract). Both paths end with the same automatic checks (paper's QC
+table): ``RESIDUE`` when skin-coloured pixels remain in the restored region beyond what
+its surroundings show, and ``GHOSTING`` when the restored region disagrees with what an
+adjacent frame (homography-aligned) saw there: the median absolute grey difference over
+the pixels both know exceeds ``ghost_threshold`` (a double image or a smeared hand; a
+static object revealed correctly agrees with its neighbours to a few grey levels).
 """
 
 from __future__ import annotations
@@ -28,10 +34,12 @@ from handedit.vision.skin import prior_rule, to_ycrcb
 
 
 class RestoreConfig(pydantic.BaseModel):
-    VERSION: ClassVar[int] = 1
+    VERSION: ClassVar[int] = 2
     model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
 
-    method: Literal["classical"] = "classical"
+    method: Literal["classical", "onnx"] = "classical"
+    model_path: str | None = None  # ONNX video inpainter (method="onnx")
+    work_max_side: int = pydantic.Field(640, ge=32)  # model input size when the model's is dynamic
     window: int = pydantic.Field(12, ge=0)  # frames each side of a target the caller should provide
     max_sources: int = pydantic.Field(8, ge=0)  # frames of the window used per target (spread evenly)
     dilate_px: int = pydantic.Field(6, ge=0)  # mask margin: segmentation edges and soft shadows
@@ -43,6 +51,14 @@ class RestoreConfig(pydantic.BaseModel):
     inpaint: Literal["telea", "ns", "fsr_fast", "shiftmap"] = "telea"
     inpaint_radius: int = 5
     residue_threshold: float = 0.25  # skin-coloured fraction of the restored region (above the ring's) -> RESIDUE
+    ghost_threshold: float = pydantic.Field(20.0, gt=0)  # median |grey diff| vs the best adjacent frame -> GHOSTING
+    ghost_min_overlap: float = pydantic.Field(0.2, ge=0, le=1)  # fraction of the hole a neighbour must see to judge
+
+    @pydantic.model_validator(mode="after")
+    def _model_needs_path(self) -> "RestoreConfig":
+        if self.method == "onnx" and not self.model_path:
+            raise ValueError("restore_background: method='onnx' needs model_path (an ONNX video inpainter)")
+        return self
 
 
 @dataclass
@@ -143,6 +159,40 @@ def _residue(img: np.ndarray, hole: np.ndarray, thr: float) -> bool:
     return float(skin[hole].mean()) > thr + ring_rate
 
 
+def _checks(img, hole, t, frames, holes, ok, feats, cfg: RestoreConfig) -> Reason:
+    """The restored frame's automatic QC: residue first, then ghosting."""
+    if not hole.any():
+        return Reason.OK
+    if _residue(img, hole, cfg.residue_threshold):
+        return Reason.RESIDUE
+    ghost = _ghosting(img, hole, t, frames, holes, ok, feats, cfg)
+    if ghost is not None and ghost > cfg.ghost_threshold:
+        return Reason.GHOSTING
+    return Reason.OK
+
+
+def _ghosting(img: np.ndarray, hole: np.ndarray, t: int, frames: np.ndarray, holes: np.ndarray, ok: np.ndarray,
+              feats: "_Features", cfg: RestoreConfig) -> float | None:
+    """Median |grey diff| of the restored hole against the best-agreeing adjacent frame."""
+    H, W = hole.shape
+    g = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    best = None
+    for j in (t - 1, t + 1):
+        if not (0 <= j < len(frames)) or not ok[j]:
+            continue
+        Hm = np.eye(3) if cfg.align == "identity" else _homography(feats, j, t, cfg)
+        if Hm is None:
+            Hm = np.eye(3)
+        seen = cv2.warpPerspective((~holes[j]).astype(np.uint8), Hm, (W, H), flags=cv2.INTER_NEAREST) > 0
+        both = seen & hole
+        if both.sum() < max(20, cfg.ghost_min_overlap * hole.sum()):
+            continue
+        gw = cv2.cvtColor(cv2.warpPerspective(frames[j], Hm, (W, H), flags=cv2.INTER_LINEAR), cv2.COLOR_RGB2GRAY)
+        err = float(np.median(np.abs(gw.astype(np.float32)[both] - g[both])))
+        best = err if best is None else min(best, err)
+    return best
+
+
 def restore_background(
     frames: np.ndarray,
     masks: np.ndarray,
@@ -156,8 +206,6 @@ def restore_background(
     ``frames`` is the window: the targets plus up to ``cfg.window`` frames each side.
     ``frame_ok`` (optional, (m,) bool) excludes undecodable frames as sources.
     """
-    if cfg.method != "classical":
-        raise ValueError(f"restore_background: unknown method {cfg.method!r}; this build has 'classical'")
     frames = np.asarray(frames)
     masks = np.asarray(masks, dtype=bool)
     targets = np.asarray(targets, dtype=int).reshape(-1)
@@ -175,6 +223,14 @@ def restore_background(
         return gray[i]
 
     n = len(targets)
+    if cfg.method == "onnx":
+        from handedit.models.inpainter import inpaint_onnx
+
+        out, tag = inpaint_onnx(frames, holes, targets, ok, cfg)
+        status = np.full(n, Reason.OK, STATUS_DTYPE)
+        for k, t in enumerate(targets):
+            status[k] = _checks(out[k], holes[t], int(t), frames, holes, ok, feats, cfg)
+        return RestoreResult(out, status, np.zeros(n, np.float32), tag)
     out = np.zeros((n, H, W, 3), np.uint8)
     status = np.full(n, Reason.OK, STATUS_DTYPE)
     filled_frac = np.zeros(n, np.float32)
@@ -229,8 +285,7 @@ def restore_background(
         if rest.any():
             img = _inpaint(img, rest, cfg)
         out[k] = img
-        if _residue(img, hole, cfg.residue_threshold):
-            status[k] = Reason.RESIDUE
+        status[k] = _checks(img, hole, int(t), frames, holes, ok, feats, cfg)
     inp = {"telea": "telea", "ns": "ns", "fsr_fast": "xphoto-fsr", "shiftmap": "xphoto-shiftmap"}[cfg.inpaint]
     align = "homography" if cfg.align == "homography" else "identity"
     return RestoreResult(out, status, filled_frac, f"classical:propagate-{align}+inpaint-{inp}")

@@ -1,0 +1,293 @@
+"""Benchmark drivers: build a test set from a curated store, run an editor over it.
+
+    build_testset(store, bench, n_sources, bank=...)   -> the folder + toolkit manifest
+    run_editor(bench, name, editor, concurrency=4)      -> predictions + records (resumable)
+
+Editors are I/O-bound (HTTP APIs, or local models that own a GPU), so they run in a
+bounded thread pool on the driver rather than on the Dask cluster; metric scoring,
+which is CPU-bound, is the Prefect/Dask flow in ``flows.evaluate``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from handedit.benchmark.editors import EditorError, EditRequest
+from handedit.benchmark.manifest import ManifestError, ManifestItem
+from handedit.benchmark.prices import price_per_image
+from handedit.benchmark.testset import TRACK_NAMES, TestItem, instruction, item_id, select_frames
+from handedit.embodiments import get_embodiment
+from handedit.reasons import Reason
+from storage import Unit, open_store
+from storage.benchmark import (BenchDir, BenchIOError, append_jsonl, decode_image, encode_png, iter_jsonl, read_json,
+                               write_bytes, write_image, write_json, write_jsonl)
+from storage.layout import SCOPE_MASK
+from storage.store import now_iso
+
+log = logging.getLogger("handedit.bench")
+
+
+# ----------------------------------------------------------------------------- build
+
+
+def _kept(root, clip: str, emb: str) -> np.ndarray | None:
+    unit = Unit("qc", clip, embodiment=emb)
+    if unit.path not in root:
+        return None
+    return root[unit.path]["status"][:] == Reason.OK
+
+
+def build_testset(store: str | Path, bench: str | Path, n_sources: int = 1000, embodiments: list[str] | None = None,
+                  bank: str | Path | None = None, seed: int = 0, tracks: tuple[str, ...] = ("hand", "hand_arm")) -> dict:
+    """Write the two tracks' items (N source frames x the track's embodiments) and the manifest.
+
+    Without a reference bank the items have no reference views: editors get no render
+    and ID fidelity's S_ref is skipped (logged). Returns the folder's meta.
+    """
+    root = open_store(store)
+    out = BenchDir(Path(bench))
+    clips = sorted(c for c, v in (root.attrs.get("clips") or {}).items() if "error" not in v)
+    stored_embs = root.attrs.get("embodiments") or {}
+    wanted = embodiments or sorted(stored_embs)
+    unknown = [e for e in wanted if e not in stored_embs]
+    if unknown:
+        raise ValueError(f"embodiment(s) {unknown} were not curated into {store} (it has {sorted(stored_embs)})")
+    refs = _write_refs(out, wanted, bank)
+    items: list[TestItem] = []
+    for scope in tracks:
+        embs = [e for e in wanted if stored_embs[e].get("scope") == scope]
+        if not embs:
+            continue
+        kept = {c: {e: k for e in embs if (k := _kept(root, c, e)) is not None} for c in clips}
+        for sf in select_frames(kept, n_sources, seed):
+            src_grp = root[Unit("ingest", sf.clip).path]
+            src = src_grp["frames"][sf.frame]
+            human = root[Unit("segment", sf.clip).path][SCOPE_MASK[scope]][sf.frame]
+            obj = src_grp["object_mask"][sf.frame] if "object_mask" in src_grp else None
+            for emb in embs:
+                if not kept[sf.clip].get(emb, np.zeros(0, bool))[sf.frame:sf.frame + 1].any():
+                    continue
+                e = get_embodiment(emb)
+                iid = item_id(scope, sf.clip, sf.frame, emb)
+                gt = root[Unit("harmonize", sf.clip, embodiment=emb).path]["image"][sf.frame]
+                robot = root[Unit("composite", sf.clip, embodiment=emb).path]["robot_mask"][sf.frame]
+                write_image(out.item_file(iid, "src"), src)
+                write_image(out.item_file(iid, "gt"), gt)
+                write_image(out.item_file(iid, "human_mask"), human)
+                write_image(out.item_file(iid, "robot_mask"), robot)
+                write_image(out.item_file(iid, "test_mask"), human | robot)
+                if obj is not None:
+                    write_image(out.item_file(iid, "object_mask"), obj)
+                desc = refs.get(emb, {}).get("description") or e.description
+                items.append(TestItem(iid, scope, sf.clip, sf.frame, emb, e.name, desc,
+                                      instruction(scope, e.name, desc), len(refs.get(emb, {}).get("views", [])),
+                                      {"has_object": obj is not None}))
+    manifest = [manifest_item(out, it, refs.get(it.embodiment, {}), pred="") for it in items]
+    write_jsonl(out.manifest, [m.to_record(out.root) for m in manifest])
+    meta = {"created": now_iso(), "store": str(store), "bank": str(bank) if bank else None, "n_sources": n_sources,
+            "seed": seed, "items": [asdict(i) for i in items],
+            "tracks": {s: sorted({i.embodiment for i in items if i.scope == s}) for s in tracks}}
+    write_json(out.meta, meta)
+    return meta
+
+
+def _write_refs(out: BenchDir, embs: list[str], bank: str | Path | None) -> dict[str, dict]:
+    if bank is None:
+        log.error("no reference bank given: items get no reference render; ID fidelity's S_ref is skipped "
+                  "(build one with `handedit bank build --out bank.zarr`)")
+        return {}
+    from storage.bank import read_bank
+
+    refs = {}
+    for emb in embs:
+        rgb, mask, desc, _name = read_bank(bank, emb)
+        views = []
+        for v in range(rgb.shape[0]):
+            a, b = out.ref_files(emb, v)
+            write_image(a, rgb[v])
+            write_image(b, mask[v])
+            views.append((str(a), str(b)))
+        refs[emb] = {"views": views, "description": desc}
+    return refs
+
+
+def manifest_item(out: BenchDir, it: TestItem, ref: dict, pred: str) -> ManifestItem:
+    views = ref.get("views", [])
+    obj = out.item_file(it.id, "object_mask")
+    return ManifestItem(
+        id=it.id, replacement_scope=it.scope, target_name=it.target_name,
+        src_path=str(out.item_file(it.id, "src")), pred_path=pred, gt_path=str(out.item_file(it.id, "gt")),
+        gt_mask_path=str(out.item_file(it.id, "robot_mask")), test_mask_path=str(out.item_file(it.id, "test_mask")),
+        human_mask_path=str(out.item_file(it.id, "human_mask")), robot_mask_path=str(out.item_file(it.id, "robot_mask")),
+        object_mask_path=str(obj) if it.extra.get("has_object") else "",
+        urdf_ref_paths=[a for a, _ in views], urdf_mask_paths=[b for _, b in views],
+        extra={"embodiment": it.embodiment, "instruction": it.instruction, "description": it.description,
+               "clip": it.clip, "frame": it.frame},
+    )
+
+
+def load_manifest(path: str | Path) -> tuple[list[ManifestItem], list[dict]]:
+    """(valid items, per-line errors {line, id, error}); a bad line never stops the rest."""
+    path = Path(path)
+    items, errors, seen = [], [], set()
+    for no, obj, err in iter_jsonl(path):
+        if err:
+            errors.append({"line": no, "id": None, "error": err})
+            continue
+        try:
+            it = ManifestItem.from_record(obj, base=path.parent, where=f"{path}:{no}: ")
+        except ManifestError as exc:
+            errors.append({"line": no, "id": obj.get("id"), "error": str(exc)})
+            continue
+        if it.id in seen:
+            errors.append({"line": no, "id": it.id, "error": f"{path}:{no}: duplicate id {it.id!r}"})
+            continue
+        seen.add(it.id)
+        items.append(it)
+    return items, errors
+
+
+def export_manifest(bench: str | Path, editor: str | None, dest: str | Path) -> Path:
+    """The test set's manifest with ``pred_path`` pointing at ``editor``'s predictions."""
+    out = BenchDir(Path(bench))
+    items, errors = load_manifest(out.manifest)
+    if errors:
+        raise BenchIOError(f"{out.manifest} has invalid lines: {errors[:3]}")
+    dest = Path(dest)
+    if editor:
+        for it in items:
+            it.pred_path = str(out.prediction(editor, it.id))
+    write_jsonl(dest, [it.to_record(dest.parent) for it in items])
+    return dest
+
+
+# ----------------------------------------------------------------------------- run an editor
+
+
+@dataclass
+class RunSummary:
+    editor: str
+    model: str
+    ran: int
+    ok: int
+    failed: int
+    skipped: int
+    cost_usd: float | None
+    seconds: float
+    failures: list[dict]
+
+
+def run_editor(bench: str | Path, name: str, editor, concurrency: int = 4, max_tries: int = 3,
+               backoff_s: float = 2.0, limit: int | None = None, price: float | None = None) -> RunSummary:
+    """Run ``editor`` (``.edit(EditRequest) -> bytes``, ``.model``) over every item.
+
+    Resumable: an item whose prediction PNG exists is skipped (PNGs are written
+    atomically, so an existing file is complete). Transient errors are retried with
+    exponential backoff; each finished item appends one record (ok or failed, with the
+    error) to ``predictions/<name>/records.jsonl``. Cost = price per image (the
+    paper's roster for known models, or ``price``) x successful images.
+    """
+    out = BenchDir(Path(bench))
+    items, errors = load_manifest(out.manifest)
+    if errors:
+        raise BenchIOError(f"{out.manifest} has invalid lines, rebuild the test set: {errors[:3]}")
+    if limit is not None:
+        items = items[:limit]
+    unit_price = price if price is not None else price_per_image(getattr(editor, "model", name))
+    todo = [it for it in items if not out.prediction(name, it.id).is_file()]
+    t0 = time.monotonic()
+    failures, ok = [], 0
+
+    def one(it: ManifestItem) -> dict:
+        req = EditRequest(it.id, Path(it.src_path), Path(it.urdf_ref_paths[0]) if it.urdf_ref_paths else None,
+                          it.instruction, out.prediction(name, it.id), Path(it.gt_path))
+        started, last = time.monotonic(), ""
+        for attempt in range(1, max_tries + 1):
+            try:
+                data = editor.edit(req)
+                image = decode_image(data, f"{name} output for {it.id}")
+                write_bytes(req.out_path, encode_png(image))
+                return {"status": "ok", "attempts": attempt, "height": image.shape[0], "width": image.shape[1],
+                        "seconds": time.monotonic() - started}
+            except (EditorError, BenchIOError, OSError) as exc:
+                last = f"{type(exc).__name__}: {exc}"
+                if not getattr(exc, "transient", isinstance(exc, OSError)) or attempt == max_tries:
+                    break
+                time.sleep(backoff_s * 2 ** (attempt - 1))
+        return {"status": "failed", "attempts": attempt, "error": last, "seconds": time.monotonic() - started}
+
+    with ThreadPoolExecutor(max_workers=max(1, concurrency)) as pool:
+        futures = {pool.submit(one, it): it for it in todo}
+        for fut in as_completed(futures):
+            it = futures[fut]
+            rec = {"id": it.id, "editor": name, "model": getattr(editor, "model", name), "finished": now_iso(), **fut.result()}
+            rec["cost_usd"] = unit_price if rec["status"] == "ok" and unit_price is not None else 0.0 if unit_price is not None else None
+            append_jsonl(out.records(name), rec)  # only this driver thread appends
+            if rec["status"] == "ok":
+                ok += 1
+            else:
+                failures.append({"id": it.id, "error": rec["error"]})
+                log.warning("%s failed on %s: %s", name, it.id, rec["error"])
+    return RunSummary(name, getattr(editor, "model", name), len(todo), ok, len(failures), len(items) - len(todo),
+                      editor_cost(bench, name), time.monotonic() - t0, failures)
+
+
+def editor_cost(bench: str | Path, name: str) -> float | None:
+    """Total accounted cost over every run of ``name`` (None when no price is known)."""
+    path = BenchDir(Path(bench)).records(name)
+    if not path.is_file():
+        return None
+    costs = [r.get("cost_usd") for _, r, e in iter_jsonl(path) if r]
+    known = [c for c in costs if c is not None]
+    return float(sum(known)) if known else None
+
+
+def track_title(scope: str) -> str:
+    return TRACK_NAMES[scope]
+
+
+def testset_meta(bench: str | Path) -> dict:
+    return read_json(BenchDir(Path(bench)).meta)
+
+
+# ----------------------------------------------------------------------------- report
+
+
+def write_report(bench: str | Path, editors: list[str] | None = None) -> dict[str, list[Path]]:
+    """Tables (Markdown, LaTeX, CSV) and a radar PNG per track from results/*/summary.json."""
+    from handedit.benchmark.report import radar_png, track_tables
+
+    out = BenchDir(Path(bench))
+    results = out.root / "results"
+    names = editors or sorted(p.name for p in results.iterdir() if (p / "summary.json").is_file()) if results.is_dir() else []
+    if not names:
+        raise BenchIOError(f"no results under {results}; run `handedit bench evaluate` first")
+    summaries = {n: read_json(out.results(n) / "summary.json") for n in names}
+    written: dict[str, list[Path]] = {}
+    md_all = []
+    for scope, title in TRACK_NAMES.items():
+        rows = {n: s["tracks"][scope]["metrics"] for n, s in summaries.items() if scope in s.get("tracks", {})}
+        if not rows:
+            continue
+        rows = {n: {k: (float("nan") if v is None else v) for k, v in r.items()} for n, r in rows.items()}
+        files = []
+        for key, table in track_tables(title, rows).items():
+            md_all.append(table.markdown())
+            files.append(write_text(out.report / f"{scope}_{key}.tex", table.latex()))
+            files.append(write_text(out.report / f"{scope}_{key}.csv", table.csv()))
+        files.append(write_image(out.report / f"{scope}_radar.png", radar_png(title, rows)))
+        written[scope] = files
+    skipped = sorted({m for s in summaries.values() for m in s.get("skipped", [])})
+    notes = [f"\nSkipped metrics (missing encoder or judge): {', '.join(skipped)}"] if skipped else []
+    for n, s in summaries.items():
+        if s.get("n_errors"):
+            notes.append(f"\n{n}: {s['n_errors']} item(s) not scored (see results/{n}/items.csv)")
+    md = write_text(out.report / "tables.md", "\n".join(md_all) + "\n".join(notes) + "\n")
+    written.setdefault("all", []).append(md)
+    return written

@@ -1,0 +1,178 @@
+"""``handedit bench``: the HandEdit benchmark.
+
+    handedit bench build --store RUN/handedit.zarr --out BENCH [--bank bank.zarr] [-n 1000]
+    handedit bench run --bench BENCH --editor http --name gpt-image-2 --model gpt-image-2 [--base-url URL]
+    handedit bench run --bench BENCH --editor cmd --name qwen --command 'python edit.py {src} {ref} {prompt_file} {out}'
+    handedit bench evaluate --bench BENCH --name gpt-image-2 [--models DIR] [--judge-url URL]
+    handedit bench evaluate --manifest toolkit.jsonl --out RESULTS --name X   (toolkit manifests)
+    handedit bench export --bench BENCH --name X --out toolkit.jsonl
+    handedit bench report --bench BENCH
+
+Keys come from the environment (HANDEDIT_EDITOR_API_KEY, HANDEDIT_VLM_API_KEY, or
+OPENAI_API_KEY), never from the command line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+
+def _defaults() -> None:
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
+
+
+def cmd_build(args: argparse.Namespace) -> int:
+    from flows.benchmark import build_testset
+    from storage import StoreError
+
+    try:
+        meta = build_testset(args.store, args.out, args.n, args.embodiment, args.bank, args.seed)
+    except (StoreError, ValueError) as exc:
+        print(f"handedit bench build: {exc}", file=sys.stderr)
+        return 2
+    for scope, embs in meta["tracks"].items():
+        n = sum(1 for i in meta["items"] if i["scope"] == scope)
+        print(f"{scope}: {n} items over {len(embs)} embodiment(s) {embs}")
+    print(f"test set: {args.out} (manifest {Path(args.out) / 'manifest.jsonl'})")
+    return 0
+
+
+def _editor(args: argparse.Namespace):
+    from handedit.benchmark.editors import CommandEditor, HttpEditorConfig, HttpImageEditor
+
+    if args.editor == "http":
+        return HttpImageEditor(HttpEditorConfig.from_env(base_url=args.base_url, model=args.model))
+    if not args.command:
+        raise SystemExit("handedit bench run --editor cmd needs --command TEMPLATE (with {src} {ref} {prompt_file} {out})")
+    return CommandEditor(args.command, model=args.model or args.name)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from flows.benchmark import run_editor
+    from handedit.benchmark.editors import EditorError
+    from storage.benchmark import BenchIOError
+
+    try:
+        summary = run_editor(args.bench, args.name, _editor(args), concurrency=args.concurrency,
+                             max_tries=args.tries, limit=args.limit, price=args.price_per_image)
+    except (EditorError, BenchIOError) as exc:
+        print(f"handedit bench run: {exc}", file=sys.stderr)
+        return 2
+    cost = "unknown price" if summary.cost_usd is None else f"${summary.cost_usd:.2f} accounted"
+    print(f"{summary.editor} ({summary.model}): ran {summary.ran}, ok {summary.ok}, failed {summary.failed}, "
+          f"skipped (done before) {summary.skipped}; {cost}; {summary.seconds:.1f}s")
+    for f in summary.failures[:10]:
+        print(f"  {f['id']}: {f['error']}")
+    return 1 if summary.failed else 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    _defaults()
+    from flows.benchmark import export_manifest
+    from flows.config import ClusterConfig
+    from flows.evaluate import EvaluateConfig, run_evaluate
+    from handedit.metrics.vlm import JudgeConfig
+    from storage.benchmark import BenchDir
+
+    if args.manifest:
+        manifest, out = Path(args.manifest), Path(args.out or Path(args.manifest).with_suffix(""))
+    elif args.bench:
+        bench = BenchDir(Path(args.bench))
+        out = bench.results(args.name)
+        manifest = export_manifest(args.bench, args.name, out / "manifest.jsonl")
+    else:
+        raise SystemExit("handedit bench evaluate: give --bench DIR (with --name) or --manifest FILE")
+    cache = (Path(args.bench) / "vlm_cache") if args.bench else out / "vlm_cache"
+    judge = JudgeConfig.from_env(base_url=args.judge_url, model=args.judge_model, cache_dir=cache)
+    cfg = EvaluateConfig(manifest=manifest, out=out, editor=args.name, model_dir=args.models or os.environ.get("HANDEDIT_MODEL_DIR"),
+                         judge=judge, chunk_size=args.chunk_size,
+                         cluster=ClusterConfig(address=args.address, n_workers=args.workers))
+    summary = run_evaluate(cfg)
+    for scope, t in summary["tracks"].items():
+        print(f"{scope}: {t['n_scored']}/{t['n_items']} scored")
+        print("  " + json.dumps({k: (round(v, 4) if v is not None else None) for k, v in t["metrics"].items()}))
+    if summary["skipped"]:
+        print(f"skipped metrics: {', '.join(summary['skipped'])}", file=sys.stderr)
+    for e in summary["errors"][:10]:
+        print(f"  {e['id']}: {e['error']}", file=sys.stderr)
+    print(f"results: {out}")
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from flows.benchmark import export_manifest
+
+    print(export_manifest(args.bench, args.name, args.out))
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from flows.benchmark import write_report
+    from storage.benchmark import BenchIOError
+
+    try:
+        written = write_report(args.bench, args.name)
+    except BenchIOError as exc:
+        print(f"handedit bench report: {exc}", file=sys.stderr)
+        return 2
+    for files in written.values():
+        for f in files:
+            print(f)
+    return 0
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("bench", help="the HandEdit benchmark: build, run editors, evaluate, report")
+    sub = p.add_subparsers(dest="bench_cmd", required=True)
+
+    b = sub.add_parser("build", help="test set (two tracks) + toolkit manifest from a curated store")
+    b.add_argument("--store", required=True)
+    b.add_argument("--out", required=True, help="benchmark folder")
+    b.add_argument("--bank", help="reference bank (handedit bank build)")
+    b.add_argument("-n", type=int, default=1000, help="source images per track")
+    b.add_argument("--embodiment", action="append", help="restrict to these embodiments (repeatable)")
+    b.add_argument("--seed", type=int, default=0)
+    b.set_defaults(func=cmd_build)
+
+    r = sub.add_parser("run", help="run an editor over a test set (resumable)")
+    r.add_argument("--bench", required=True)
+    r.add_argument("--editor", choices=("http", "cmd"), required=True)
+    r.add_argument("--name", required=True, help="name of this editor's predictions and report row")
+    r.add_argument("--model", help="model id (HTTP: sent to the API; also prices the run)")
+    r.add_argument("--base-url", help="OpenAI-compatible base URL (default env HANDEDIT_EDITOR_BASE_URL)")
+    r.add_argument("--command", help="command template for --editor cmd")
+    r.add_argument("--concurrency", type=int, default=4)
+    r.add_argument("--tries", type=int, default=3)
+    r.add_argument("--limit", type=int)
+    r.add_argument("--price-per-image", type=float, help="USD, when the model is not in the paper's roster")
+    r.set_defaults(func=cmd_run)
+
+    e = sub.add_parser("evaluate", help="score predictions with the full metric suite (Prefect flow on Dask)")
+    e.add_argument("--bench")
+    e.add_argument("--manifest", help="a toolkit JSONL manifest instead of --bench")
+    e.add_argument("--out", help="results folder with --manifest")
+    e.add_argument("--name", required=True)
+    e.add_argument("--models", help="encoder ONNX folder (default env HANDEDIT_MODEL_DIR)")
+    e.add_argument("--judge-url", help="OpenAI-compatible chat base URL (default env HANDEDIT_VLM_BASE_URL)")
+    e.add_argument("--judge-model", help="default env HANDEDIT_VLM_MODEL or gpt-4o")
+    e.add_argument("--chunk-size", type=int, default=16)
+    e.add_argument("--address", help="Dask scheduler address")
+    e.add_argument("--workers", type=int, default=2)
+    e.set_defaults(func=cmd_evaluate)
+
+    x = sub.add_parser("export", help="write the toolkit manifest with an editor's pred_path")
+    x.add_argument("--bench", required=True)
+    x.add_argument("--name")
+    x.add_argument("--out", required=True)
+    x.set_defaults(func=cmd_export)
+
+    rp = sub.add_parser("report", help="per-track tables (md, tex, csv) and radar charts")
+    rp.add_argument("--bench", required=True)
+    rp.add_argument("--name", action="append", help="editors to include (default: all evaluated)")
+    rp.set_defaults(func=cmd_report)

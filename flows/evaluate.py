@@ -1,0 +1,111 @@
+"""The evaluate flow: the full metric suite over a toolkit manifest, on a Dask cluster.
+
+    manifest.jsonl -> chunks of items -> tasks.evaluate (per item: PSNR/SSIM/LPIPS x
+    full/BG/ROI, Removal, Struct/ID fidelity, Interaction, VLM judge; Inception
+    features) -> driver: FID per track (full, ROI), per-track means -> results/
+
+Encoders missing from ``model_dir`` disable only their metrics, listed in the
+summary's ``skipped`` and logged as errors. Bad manifest lines and bad items are
+per-item errors in ``items.csv`` / ``summary.json``; everything else is scored.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from prefect import flow, get_run_logger
+from pydantic import BaseModel, Field
+
+from flows.benchmark import load_manifest
+from flows.config import ClusterConfig
+from handedit.metrics.embodied import EmbodiedConfig
+from handedit.metrics.encoders import ENCODERS, missing_encoders
+from handedit.metrics.frechet import fid
+from handedit.metrics.suite import EXTRAS, METRICS
+from handedit.metrics.vlm import JudgeConfig
+from storage.benchmark import write_json, write_text
+from storage.store import now_iso
+from tasks.evaluate import EvalJob, evaluate_chunk
+
+ITEMS_CSV, SUMMARY_JSON = "items.csv", "summary.json"
+
+
+class EvaluateConfig(BaseModel):
+    manifest: Path = Field(description="toolkit JSONL manifest with pred_path filled")
+    out: Path = Field(description="results folder (items.csv, summary.json)")
+    editor: str = Field(description="the editor's display name in reports")
+    model_dir: Path | None = Field(None, description="folder with the encoder ONNX files")
+    judge: JudgeConfig | None = None
+    embodied: EmbodiedConfig = EmbodiedConfig()
+    chunk_size: int = Field(16, ge=1, description="items per task")
+    cluster: ClusterConfig = ClusterConfig()
+
+
+@flow(name="evaluate", log_prints=True)
+def evaluate(cfg: EvaluateConfig) -> dict:
+    logger = get_run_logger()
+    items, line_errors = load_manifest(cfg.manifest)
+    for e in line_errors:
+        logger.error("manifest: %s", e["error"])
+    missing = missing_encoders(cfg.model_dir)
+    skipped = [m for name in missing for m in ENCODERS[name].metrics]
+    for name, why in missing.items():
+        logger.error("encoder %s missing (%s): skipping %s", name, why, ", ".join(ENCODERS[name].metrics))
+    if cfg.judge is None:
+        skipped += ["vlm_sc", "vlm_pq", "vlm"]
+        logger.error("no VLM judge configured (HANDEDIT_VLM_BASE_URL): skipping the VLM judge")
+    records = [it.to_record() for it in items]
+    chunks = [records[i:i + cfg.chunk_size] for i in range(0, len(records), cfg.chunk_size)]
+    futures = [evaluate_chunk.submit(EvalJob(k, c, str(cfg.model_dir) if cfg.model_dir else None, cfg.judge, cfg.embodied))
+               for k, c in enumerate(chunks)]
+    rows, feats = [], {}
+    for k, fut in enumerate(futures):
+        res = fut.result(raise_on_failure=False)
+        if isinstance(res, dict):
+            rows += res["rows"]
+            feats.update(res["features"])
+        else:  # the whole chunk failed after retries: every item gets the error
+            for rec in chunks[k]:
+                rows.append({"id": rec["id"], "track": rec["replacement_scope"], "error": f"chunk failed: {res}"})
+    for e in line_errors:
+        rows.append({"id": e["id"] or f"line-{e['line']}", "track": None, "error": e["error"]})
+    summary = summarise(rows, feats, cfg.editor, skipped)
+    summary.update(manifest=str(cfg.manifest), finished=now_iso(), n_manifest_errors=len(line_errors))
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    cols = ["id", "track", "embodiment", *METRICS, *EXTRAS, "vlm_calls", "vlm_error", "seconds", "error"]
+    df = pd.DataFrame(rows)
+    df = df.reindex(columns=[c for c in cols if c in df.columns] + [c for c in df.columns if c not in cols])
+    write_text(cfg.out / ITEMS_CSV, df.to_csv(index=False))
+    write_json(cfg.out / SUMMARY_JSON, summary)
+    n_err = sum(1 for r in rows if r.get("error"))
+    logger.info("%s: %d items scored, %d errors", cfg.editor, len(rows) - n_err, n_err)
+    return summary
+
+
+def summarise(rows: list[dict], feats: dict, editor: str, skipped: list[str]) -> dict:
+    """Per-track means over scored items, plus FID (full, ROI) from pooled features."""
+    tracks: dict[str, dict] = {}
+    for scope in sorted({r["track"] for r in rows if r.get("track")}):
+        ok = [r for r in rows if r.get("track") == scope and not r.get("error")]
+        means = {}
+        for m in [*METRICS, *EXTRAS]:
+            vals = [r[m] for r in ok if isinstance(r.get(m), (int, float)) and r[m] is not None and math.isfinite(r[m])]
+            means[m] = float(np.mean(vals)) if vals else None
+        for kind in ("full", "roi"):
+            a = [feats[r["id"]][f"{kind}_pred"] for r in ok if f"{kind}_pred" in feats.get(r["id"], {})]
+            b = [feats[r["id"]][f"{kind}_gt"] for r in ok if f"{kind}_gt" in feats.get(r["id"], {})]
+            means[f"fid_{kind}"] = fid(np.stack(a), np.stack(b)) if len(a) >= 2 and len(b) >= 2 else None
+        tracks[scope] = {"n_items": sum(1 for r in rows if r.get("track") == scope), "n_scored": len(ok), "metrics": means}
+    errors = [{"id": r["id"], "error": r["error"]} for r in rows if r.get("error")]
+    return {"editor": editor, "tracks": tracks, "skipped": sorted(set(skipped)), "errors": errors,
+            "n_items": len(rows), "n_errors": len(errors)}
+
+
+def run_evaluate(cfg: EvaluateConfig) -> dict:
+    return evaluate.with_options(task_runner=cfg.cluster.task_runner())(cfg)
+
+
+__all__ = ["EvaluateConfig", "evaluate", "run_evaluate", "summarise"]

@@ -1,0 +1,109 @@
+"""One item's metric record: every per-image metric plus the features FID pools.
+
+``score_item`` is what the evaluate flow runs per item (in chunks, on Dask workers);
+FID is a set-level statistic, so items return Inception features and the driver
+pools them per (editor, track). Metrics whose encoder is missing come back NaN and
+are listed once in the run's ``skipped`` field by the caller.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from handedit.metrics import embodied, similarity
+from handedit.metrics.embodied import EmbodiedConfig
+from handedit.metrics.encoders import Encoders
+from handedit.metrics.similarity import bbox, crop
+
+# name -> (higher is better?, group) in the paper's table order
+METRICS: dict[str, tuple[bool, str]] = {
+    "psnr_full": (True, "generic"), "psnr_bg": (True, "generic"), "psnr_roi": (True, "generic"),
+    "ssim_full": (True, "generic"), "ssim_bg": (True, "generic"), "ssim_roi": (True, "generic"),
+    "lpips_full": (False, "generic"), "lpips_bg": (False, "generic"), "lpips_roi": (False, "generic"),
+    "fid_full": (False, "generic"), "fid_roi": (False, "generic"),
+    "removal": (True, "embodied"), "struct_fidelity": (True, "embodied"), "id_fidelity": (True, "embodied"),
+    "interaction": (True, "embodied"),
+    "vlm_sc": (True, "vlm"), "vlm_pq": (True, "vlm"), "vlm": (True, "vlm"),
+}
+# per-item extras kept in the item table (components of the headline metrics)
+EXTRAS = ("id_ref", "id_lab", "delta_e")
+
+
+@dataclass
+class ItemImages:
+    """Everything one item's metrics read; images uint8 (H,W,3), masks bool (H,W)."""
+
+    src: np.ndarray
+    pred: np.ndarray
+    gt: np.ndarray
+    human_mask: np.ndarray
+    robot_mask: np.ndarray
+    object_mask: np.ndarray | None = None
+    refs: list[np.ndarray] = field(default_factory=list)
+    ref_masks: list[np.ndarray] = field(default_factory=list)
+
+    @property
+    def roi(self) -> np.ndarray:
+        return self.human_mask | self.robot_mask
+
+    def check(self) -> None:
+        """Shape errors name what is wrong and what size was expected."""
+        h, w = self.gt.shape[:2]
+        for name in ("src", "pred"):
+            im = getattr(self, name)
+            if im.shape != self.gt.shape:
+                raise ValueError(f"{name} is {im.shape[1]}x{im.shape[0]}, the pseudo-GT is {w}x{h}: "
+                                 f"the editor must return the source resolution")
+        for name in ("human_mask", "robot_mask", "object_mask"):
+            m = getattr(self, name)
+            if m is not None and m.shape != (h, w):
+                raise ValueError(f"{name} is {m.shape}, expected {(h, w)}")
+
+
+def score_item(items: ItemImages, enc: Encoders, cfg: EmbodiedConfig = EmbodiedConfig()) -> tuple[dict, dict]:
+    """-> (metrics {name: float}, features {'full_pred','full_gt','roi_pred','roi_gt': (D,)})."""
+    items.check()
+    nan = float("nan")
+    src, pred, gt, roi = items.src, items.pred, items.gt, items.roi
+    bg = ~roi
+    box = bbox(roi)
+    out: dict[str, float] = {}
+    out["psnr_full"] = similarity.psnr(pred, gt)
+    out["psnr_bg"] = similarity.psnr(pred, gt, bg)
+    out["ssim_full"] = similarity.ssim(pred, gt)
+    out["ssim_bg"] = similarity.ssim(pred, gt, bg)
+    pred_roi = crop(pred, box) if box else None
+    gt_roi = crop(gt, box) if box else None
+    out["psnr_roi"] = similarity.psnr(pred_roi, gt_roi) if box else nan
+    out["ssim_roi"] = similarity.ssim(pred_roi, gt_roi) if box and min(pred_roi.shape[:2]) >= 3 else nan
+    if enc.lpips is not None:
+        out["lpips_full"] = enc.lpips.distance(pred, gt)
+        out["lpips_bg"] = enc.lpips.masked_distance(pred, gt, bg)
+        out["lpips_roi"] = enc.lpips.distance(pred_roi, gt_roi) if box else nan
+    else:
+        out["lpips_full"] = out["lpips_bg"] = out["lpips_roi"] = nan
+    out["removal"] = embodied.removal(pred, roi)
+    out["struct_fidelity"] = embodied.struct_fidelity(enc.dinov2, pred, gt, roi) if enc.dinov2 else nan
+    de = embodied.delta_e_lab(pred, gt, items.robot_mask)
+    out["delta_e"] = de
+    out["id_lab"] = embodied.lab_score(de, cfg.lab_tau)
+    if enc.clip is not None and items.refs:
+        out["id_ref"] = embodied.ref_score(enc.clip, pred, items.robot_mask, items.refs, items.ref_masks)
+    else:
+        out["id_ref"] = nan
+    out["id_fidelity"] = embodied.id_fidelity(out["id_ref"], out["id_lab"], cfg.id_lambda)
+    if enc.lpips is not None and items.object_mask is not None and items.object_mask.any():
+        contact = embodied.contact_region(items.object_mask, roi, cfg)
+        out["interaction"] = embodied.interaction(enc.lpips, src, pred, contact) if contact.any() else nan
+    else:
+        out["interaction"] = nan
+    feats: dict[str, np.ndarray] = {}
+    if enc.inception is not None:
+        ims = [pred, gt] + ([pred_roi, gt_roi] if box else [])
+        e = enc.inception.embed(ims)
+        feats = {"full_pred": e[0], "full_gt": e[1]}
+        if box:
+            feats.update(roi_pred=e[2], roi_gt=e[3])
+    return out, feats

@@ -1,0 +1,163 @@
+"""Loading an ONNX model against a declared input/output contract, with clear errors.
+
+Why a contract: the pipeline never knows which network a user exported (SAM-like,
+ProPainter, Harmonizer, or their own), only what tensors it exchanges. Each plug-in
+module declares its ``Contract``; ``load_model`` checks the file exists, opens it with
+onnxruntime, and compares names, ranks and dtypes before any frame is processed, so a
+wrong file fails at once with a message naming the file and the expected signature.
+The file's sha256 goes into the stage's ``method`` string (provenance).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+
+class ModelContractError(ValueError):
+    """The model file is missing, unreadable, or its signature does not match the contract."""
+
+
+@dataclass(frozen=True)
+class TensorSpec:
+    name: str
+    rank: int
+    dtype: str = "tensor(float)"
+    doc: str = ""  # shape and meaning, shown in error messages
+
+    def describe(self) -> str:
+        return f"{self.name}: {self.dtype} rank {self.rank} {self.doc}".rstrip()
+
+
+@dataclass(frozen=True)
+class Contract:
+    kind: str  # "segmenter", "video inpainter", "harmonizer"
+    inputs: tuple[TensorSpec, ...]
+    outputs: tuple[TensorSpec, ...]
+    optional_inputs: tuple[TensorSpec, ...] = ()
+
+    def signature(self) -> str:
+        ins = "; ".join(t.describe() for t in self.inputs)
+        opt = "; ".join(t.describe() for t in self.optional_inputs)
+        outs = "; ".join(t.describe() for t in self.outputs)
+        return f"inputs [{ins}]" + (f" optional [{opt}]" if opt else "") + f" -> outputs [{outs}]"
+
+
+@dataclass
+class LoadedModel:
+    path: Path
+    sha256: str
+    session: object  # onnxruntime.InferenceSession
+    contract: Contract
+    input_shapes: dict[str, list]  # declared shapes (ints, or str/None for dynamic axes)
+    input_names: frozenset[str]
+
+    @property
+    def tag(self) -> str:
+        """Provenance string: file name and content hash."""
+        return f"{self.path.name}@sha256:{self.sha256[:16]}"
+
+    def fixed_hw(self, name: str) -> tuple[int, int] | None:
+        """(H, W) when the model declares fixed spatial sizes for input ``name``."""
+        shape = self.input_shapes.get(name) or []
+        if len(shape) >= 2 and all(isinstance(d, int) and d > 0 for d in shape[-2:]):
+            return int(shape[-2]), int(shape[-1])
+        return None
+
+    def fixed_dim(self, name: str, axis: int) -> int | None:
+        shape = self.input_shapes.get(name) or []
+        d = shape[axis] if len(shape) > abs(axis) else None
+        return int(d) if isinstance(d, int) and d > 0 else None
+
+    def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        feeds = {k: v for k, v in feeds.items() if k in self.input_names}
+        names = [t.name for t in self.contract.outputs]
+        try:
+            outs = self.session.run(names, feeds)
+        except Exception as exc:  # onnxruntime raises its own types (shape / type errors)
+            raise ModelContractError(
+                f"{self.contract.kind} model {self.path} failed at run time ({exc.__class__.__name__}: {exc}); "
+                f"expected signature: {self.contract.signature()}"
+            ) from exc
+        return dict(zip(names, outs))
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _providers() -> list[str]:
+    import onnxruntime as ort
+
+    avail = ort.get_available_providers()
+    want = os.environ.get("HANDEDIT_ORT_PROVIDERS")
+    if want:
+        return [p for p in want.split(",") if p in avail] or ["CPUExecutionProvider"]
+    return [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in avail]
+
+
+def load_model(path: str | os.PathLike, contract: Contract) -> LoadedModel:
+    """Open ``path`` and check it against ``contract`` (cached per file content and process)."""
+    p = Path(path).expanduser()
+    if not p.is_file():
+        raise ModelContractError(
+            f"{contract.kind} model file not found: {p}. Point the stage's model_path at an ONNX file "
+            f"exported to the contract: {contract.signature()}"
+        )
+    st = p.stat()
+    return _load_cached(str(p.resolve()), st.st_mtime_ns, st.st_size, contract)
+
+
+@lru_cache(maxsize=8)
+def _load_cached(path: str, mtime_ns: int, size: int, contract: Contract) -> LoadedModel:
+    import onnxruntime as ort
+
+    p = Path(path)
+    try:
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = int(os.environ.get("HANDEDIT_ORT_THREADS", "1"))
+        opts.log_severity_level = 3
+        sess = ort.InferenceSession(str(p), sess_options=opts, providers=_providers())
+    except Exception as exc:
+        raise ModelContractError(f"{contract.kind} model {p} could not be loaded by onnxruntime ({exc}); "
+                                 f"expected an ONNX file with {contract.signature()}") from exc
+    got_in = {i.name: i for i in sess.get_inputs()}
+    got_out = {o.name: o for o in sess.get_outputs()}
+    problems = []
+    for t in contract.inputs:
+        i = got_in.get(t.name)
+        if i is None:
+            problems.append(f"missing input '{t.name}'")
+        elif len(i.shape) != t.rank or i.type != t.dtype:
+            problems.append(f"input '{t.name}' is {i.type} rank {len(i.shape)}, expected {t.dtype} rank {t.rank}")
+    for t in contract.optional_inputs:
+        i = got_in.get(t.name)
+        if i is not None and (len(i.shape) != t.rank or i.type != t.dtype):
+            problems.append(f"input '{t.name}' is {i.type} rank {len(i.shape)}, expected {t.dtype} rank {t.rank}")
+    known = {t.name for t in (*contract.inputs, *contract.optional_inputs)}
+    extra = sorted(set(got_in) - known)
+    if extra:
+        problems.append(f"unexpected inputs {extra}")
+    for t in contract.outputs:
+        o = got_out.get(t.name)
+        if o is None:
+            problems.append(f"missing output '{t.name}'")
+        elif len(o.shape) != t.rank or o.type != t.dtype:
+            problems.append(f"output '{t.name}' is {o.type} rank {len(o.shape)}, expected {t.dtype} rank {t.rank}")
+    if problems:
+        have = ", ".join(f"{i.name}:{i.type}{list(i.shape)}" for i in sess.get_inputs())
+        raise ModelContractError(
+            f"{contract.kind} model {p} does not match the contract: {'; '.join(problems)}. "
+            f"It has inputs [{have}]; expected {contract.signature()}"
+        )
+    shapes = {n: list(i.shape) for n, i in got_in.items()}
+    return LoadedModel(p, file_sha256(p), sess, contract, shapes, frozenset(got_in))

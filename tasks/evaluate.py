@@ -1,0 +1,79 @@
+"""The evaluate task: score one chunk of benchmark items (never one item per task).
+
+Reads each item's PNGs through ``storage.benchmark``, calls ``handedit.metrics`` and
+the VLM judge, and returns rows + FID features to the driver. A bad item (missing
+file, wrong size, undecodable image) becomes that item's error row; the chunk goes on.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from functools import lru_cache
+
+from prefect import task
+from prefect.cache_policies import NO_CACHE
+
+from handedit.benchmark.manifest import ManifestItem
+from handedit.metrics.embodied import EmbodiedConfig
+from handedit.metrics.encoders import Encoders, load_encoders
+from handedit.metrics.suite import ItemImages, score_item
+from handedit.metrics.vlm import JudgeConfig, VlmJudge
+from storage.benchmark import read_image, read_mask
+from tasks.common import RETRIES, RETRY_DELAYS, retry_transient
+
+
+@dataclass(frozen=True)
+class EvalJob:
+    chunk: int
+    items: list[dict]  # manifest records with absolute paths
+    model_dir: str | None
+    judge: JudgeConfig | None
+    embodied: EmbodiedConfig
+
+
+@lru_cache(maxsize=4)
+def _encoders(model_dir: str | None) -> Encoders:
+    return load_encoders(model_dir)  # once per worker process
+
+
+def load_item(it: ManifestItem) -> ItemImages:
+    if not it.pred_path:
+        raise FileNotFoundError(f"item {it.id} has no pred_path: run the editor first (handedit bench run)")
+    return ItemImages(
+        src=read_image(it.src_path), pred=read_image(it.pred_path), gt=read_image(it.gt_path),
+        human_mask=read_mask(it.human_mask_path), robot_mask=read_mask(it.robot_mask_path),
+        object_mask=read_mask(it.object_mask_path) if it.object_mask_path else None,
+        refs=[read_image(p) for p in it.urdf_ref_paths], ref_masks=[read_mask(p) for p in it.urdf_mask_paths],
+    )
+
+
+def body(job: EvalJob) -> dict:
+    enc = _encoders(job.model_dir)
+    judge = VlmJudge(job.judge) if job.judge else None
+    rows, feats = [], {}
+    for rec in job.items:
+        it = ManifestItem.from_record(dict(rec))
+        row = {"id": it.id, "track": it.replacement_scope, "embodiment": it.embodiment or it.target_name, "error": ""}
+        t0 = time.monotonic()
+        try:
+            images = load_item(it)
+            metrics, f = score_item(images, enc, job.embodied)
+            row.update(metrics)
+            if f:
+                feats[it.id] = f
+            if judge is not None:
+                j = judge.judge(images.src, images.pred, images.refs[0] if images.refs else None, it.instruction)
+                row.update(vlm_sc=j.sc, vlm_pq=j.pq, vlm=j.vlm, vlm_calls=j.calls, vlm_error="; ".join(j.errors))
+        except Exception as exc:  # per-item error row; the chunk continues
+            row["error"] = f"{type(exc).__name__}: {exc}"
+        row["seconds"] = time.monotonic() - t0
+        rows.append({k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()})
+    return {"chunk": job.chunk, "rows": rows, "features": feats}
+
+
+@task(name="evaluate", retries=RETRIES, retry_delay_seconds=RETRY_DELAYS, retry_condition_fn=retry_transient,
+      cache_policy=NO_CACHE, persist_result=False, task_run_name="evaluate#{job.chunk}")
+def evaluate_chunk(job: EvalJob) -> dict:
+    return body(job)

@@ -1,0 +1,166 @@
+"""Hand-arm virtual base: grid, IK feasibility, reach rejection, support-plane ranking,
+collision primitives, shoulder initialisation."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from handedit.reasons import Reason
+from handedit.retarget.arm import arm_model
+from handedit.retarget.virtual_base import (
+    VirtualBaseConfig,
+    _seg_dist,
+    arms_collide,
+    candidate_grid,
+    initial_base,
+    search_virtual_base,
+    self_collision,
+    upright_frame,
+)
+
+EMB = "ur5e_shadow"
+CFG = VirtualBaseConfig()
+UP = np.array([0.0, -1.0, 0.0])  # camera frame: image up
+
+
+@pytest.fixture
+def assets(monkeypatch, robots_dir: Path) -> Path:
+    monkeypatch.setenv("HANDEDIT_ASSET_DIRS", str(robots_dir))
+    return robots_dir
+
+
+def _true_base() -> np.ndarray:
+    return upright_frame(np.array([0.35, 0.25, -0.2]), UP, np.array([-0.3, 0.0, 1.0]))
+
+
+UR5_Q = (0.3, -1.0, 1.2, -0.8, -1.2, 0.2)  # offsets from mid-range: an elbow-up reach
+XARM_Q = (-0.304, -0.023, 0.623, 0.694, -0.228, 0.114, -0.285)  # its elbow height varies across the grid
+
+
+def _known_sequence(n: int = 6, seed: int = 3, emb: str = EMB, q_off=UR5_Q):
+    """Wrist targets produced by the arm's own FK from a known base along a joint path."""
+    arm = arm_model(emb)
+    rng = np.random.default_rng(seed)
+    mid = (arm.lo_s + arm.hi_s) / 2
+    qa = mid + np.array(q_off)
+    qb = qa + rng.normal(0, 0.15, arm.n)
+    Tb = _true_base()
+    Q = np.stack([qa * (1 - s) + qb * s for s in np.linspace(0, 1, n)])
+    targets = np.stack([Tb @ arm.wrist_pose(q) for q in Q])
+    return targets, Tb
+
+
+def test_grid_is_27_upright_candidates(assets):
+    T0 = _true_base()
+    reach = arm_model(EMB).reach
+    grid = candidate_grid(T0, reach)
+    assert len(grid) == 27
+    offs = np.array([np.linalg.inv(T0)[:3, :3] @ (g[3][:3, 3] - T0[:3, 3]) for g in grid])
+    np.testing.assert_allclose(sorted(set(np.round(offs[:, 0] / reach, 6))), [-0.15, 0.0, 0.15], atol=1e-9)
+    np.testing.assert_allclose(sorted(set(np.round(offs[:, 1] / reach, 6))), [-0.10, 0.0, 0.10], atol=1e-9)
+    np.testing.assert_allclose(offs[:, 2], 0.0, atol=1e-12)  # height fixed
+    for g in grid:  # roll/pitch fixed: base z stays world up
+        np.testing.assert_allclose(g[3][:3, 2], UP, atol=1e-12)
+    yaws = {round(np.degrees(np.arctan2(*(np.linalg.inv(T0[:3, :3]) @ g[3][:3, 0])[[1, 0]])), 6) for g in grid}
+    assert yaws == {-15.0, 0.0, 15.0}
+
+
+def test_reachable_sequence_is_accepted(assets):
+    targets, Tb = _known_sequence()
+    res = search_virtual_base(targets, np.ones(len(targets), bool), EMB, CFG, up=UP, init_base=Tb)
+    assert len(res.candidates) == 27 and len(res.scores_json()) == 27
+    assert res.reason == Reason.OK and res.selected_by == "auto:top1"
+    centre = res.candidates[13]  # the true base is the grid centre
+    assert centre.reason == Reason.OK and centre.ee_error_mm < 1.0 and centre.critical_success == 1.0
+    keys = [res.candidates[i].key() for i in res.ranking]
+    assert keys == sorted(keys) and res.chosen == res.ranking[0]
+    assert (res.status == Reason.OK).all()
+    arm = arm_model(EMB)
+    for t, q in zip(targets, res.arm_q):  # the chosen base reproduces the wrist trajectory
+        T = res.camera_from_base @ arm.wrist_pose(q)
+        assert np.linalg.norm(T[:3, 3] - t[:3, 3]) < CFG.pos_tol_mm / 1000
+    assert res.qpos.shape == (len(targets), arm.kin.dof)
+    assert np.all(res.qpos[:, arm.arm_idx] >= arm.lower) and np.all(res.qpos[:, arm.arm_idx] <= arm.upper)
+    assert set(res.trajectories) == set(res.ranking[:3])
+
+
+def test_beyond_reach_is_rejected(assets):
+    targets, Tb = _known_sequence(n=4)
+    arm = arm_model(EMB)
+    far = targets.copy()
+    far[:, :3, 3] += Tb[:3, 0] * 3.0 * arm.reach  # 3 L_r straight ahead of the base
+    res = search_virtual_base(far, np.ones(len(far), bool), EMB, CFG.model_copy(update={"n_seeds": 2}), up=UP, init_base=Tb)
+    assert res.reason == Reason.NO_VALID_BASE and res.chosen is None and res.ranking == []
+    assert all(c.reason == Reason.OUT_OF_REACH for c in res.candidates)
+    assert (res.status == Reason.OUT_OF_REACH).all()
+    assert "out of reach" in res.detail
+
+
+def test_support_plane_collision_is_not_ranked_first(assets):
+    emb = "xarm7_ability"
+    targets, Tb = _known_sequence(emb=emb, q_off=XARM_Q)
+    valid = np.ones(len(targets), bool)
+    free = search_virtual_base(targets, valid, emb, CFG, up=UP, init_base=Tb)
+    arm = arm_model(emb)
+
+    def lowest(i):  # lowest moving capsule point of candidate i along the sequence (height along UP)
+        Tc = free.candidates[i].camera_from_base
+        return min((UP @ (Tc[:3, :3] @ arm.chain(q) + Tc[:3, 3:4]))[arm.arm_points].min() for q in free.arm_tracks[i])
+
+    top = free.ranking[0]
+    h_top = lowest(top)
+    others = {i: lowest(i) for i in free.ranking[1:]}
+    best_other = max(others.values())
+    assert best_other > h_top + 0.01  # the grid does move the arm's lowest point
+    # support plane: just above the top candidate's lowest point, well below the best other's
+    h_plane = h_top + 0.5 * (best_other - h_top) - CFG.link_radius - CFG.plane_margin
+    h_plane = max(h_plane, h_top - CFG.link_radius - CFG.plane_margin + 1e-3)
+    plane = np.concatenate([UP, [-h_plane]])
+    res = search_virtual_base(targets, valid, emb, CFG, up=UP, support_plane=plane, init_base=Tb)
+    assert res.candidates[top].reason == Reason.COLLISION
+    assert res.ranking and res.ranking[0] != top and res.chosen != top
+    assert len(res.candidates) == 27
+
+
+def test_shoulder_initialisation(assets):
+    targets, _ = _known_sequence(n=3)
+    arm = arm_model(EMB)
+    left, right = np.array([-0.2, 0.3, 0.0]), np.array([0.2, 0.3, 0.0])
+    T0 = initial_base(targets, np.ones(3, bool), UP, arm.reach, CFG, np.stack([left, right]), arm.shoulder)
+    np.testing.assert_allclose(T0[:3, :3] @ arm.shoulder + T0[:3, 3], right, atol=1e-9)  # first joint at the shoulder
+    np.testing.assert_allclose(T0[:3, 2], UP, atol=1e-12)
+    fwd = targets[:, :3, 3].mean(0) - (left + right) / 2
+    fwd -= (fwd @ UP) * UP
+    assert T0[:3, 0] @ fwd / np.linalg.norm(fwd) > 0.999
+
+
+def test_collision_primitives():
+    z = np.zeros(3)
+    assert _seg_dist(z, np.array([1.0, 0, 0]), np.array([0.5, 0.2, 0]), np.array([0.5, 1.0, 0])) == pytest.approx(0.2)
+    assert _seg_dist(z, np.array([1.0, 0, 0]), np.array([2.0, 0, 0]), np.array([3.0, 0, 0])) == pytest.approx(1.0)
+    # a chain folded back onto itself collides; a straight one does not
+    straight = np.array([[0, 0, 0], [0, 0, 0.3], [0, 0, 0.6], [0, 0, 0.9], [0, 0, 1.2]], float).T
+    folded = np.array([[0, 0, 0], [0, 0, 0.3], [0.03, 0, 0.35], [0.08, 0, 0.3], [0.06, 0, 0.0]], float).T
+    moving = np.ones(5, bool)
+    assert not self_collision(straight, moving, 0.035)
+    assert self_collision(folded, moving, 0.035)
+    assert arms_collide(straight, moving, straight + 0.03, moving, 0.035)
+    assert not arms_collide(straight, moving, straight + np.array([[1.0], [0], [0]]), moving, 0.035)
+
+
+def test_arm_ik_warm_and_cold_agree(assets):
+    arm = arm_model("xarm7_ability")
+    mid = (arm.lo_s + arm.hi_s) / 2
+    q1 = mid + 0.3
+    T1 = arm.wrist_pose(q1)
+    T2 = arm.wrist_pose(q1 + 0.05)
+    first = arm.solve(T1, q1 + 0.1)
+    warm = arm.solve(T2, first.x, q_prev=first.x, smooth=1e-4, warm=first)
+    cold = arm.solve(T2, mid)
+    for s in (warm, cold):
+        assert s.pos_err_mm < 0.5 and s.rot_err_deg < 0.1
+    np.testing.assert_allclose(arm.wrist_pose(warm.x), arm.wrist_pose(cold.x), atol=1e-3)
+    assert arm.reach > 0.5 and arm.n == 7
