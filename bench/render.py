@@ -2,6 +2,10 @@
 silhouette IoU between the two (goal: <= 60 ms/frame at IoU >= 0.98).
 
     .venv/bin/python bench/render.py --robots-dir ../shared/assets/robots [--decimate 0.2] [--grid /tmp/render_grid.png]
+    .venv/bin/python bench/render.py --roster [--robots-dir ../shared/assets/robots]   # every available embodiment
+
+``--roster`` measures every embodiment of the roster whose assets resolve (hand-arm ones as
+their composed URDF, with roster colours) instead of the raw asset files.
 
 The camera is a 60 deg head camera; hands have their bounding-box centre 0.4 m ahead, arms and
 hand-arms are framed to fit 60 % of the image; one fixed oblique view; configurations are random
@@ -52,6 +56,22 @@ def robot_urdfs(robots_dir: Path | None, kinds: set[str]) -> dict[str, tuple[Pat
     pkg = packaged_allegro()
     if pkg is not None and "hand" in kinds:
         out["allegro_pkg"] = (pkg, "hand")
+    return out
+
+
+def roster_urdfs(robots_dir: Path | None) -> dict[str, tuple[Path, str]]:
+    """embodiment id -> (URDF, kind) for every roster embodiment whose assets resolve."""
+    from handedit.embodiments import asset_status, list_embodiments, resolve_urdf
+
+    if robots_dir is not None:
+        os.environ["HANDEDIT_ASSET_DIRS"] = str(robots_dir.resolve())
+    out = {}
+    for e in list_embodiments():
+        ok, _ = asset_status(e)
+        if ok:
+            out[e.id] = (resolve_urdf(e), "hand" if e.arm is None else "hand-arm")
+        else:
+            print(f"{e.id:<22} assets missing")
     return out
 
 
@@ -118,10 +138,14 @@ def main() -> None:
     ap.add_argument("--decimate", type=float, default=0.2, help="fraction of faces kept")
     ap.add_argument("--frames", type=int, default=7)
     ap.add_argument("--grid", type=Path, default=None, help="also save a PNG grid of the hands")
+    ap.add_argument("--roster", action="store_true", help="every available roster embodiment (see doc)")
     args = ap.parse_args()
     print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores, {W}x{H}, decimate={args.decimate}")
 
-    urdfs = robot_urdfs(args.robots_dir, set(args.kinds.split(",")))
+    if args.roster:
+        urdfs = roster_urdfs(args.robots_dir)
+    else:
+        urdfs = robot_urdfs(args.robots_dir, set(args.kinds.split(",")))
     print(
         f"{'robot':<14}{'faces':>9}{'depth m':>9}{'fill %':>8}{'ms/frame':>10}{'cpu ms':>8}"
         f"{'dec faces':>11}{'dec ms':>9}{'dec cpu':>9}{'min IoU':>9}"
@@ -135,7 +159,7 @@ def main() -> None:
         q, poses, intr = scenario(r, args.frames, distance=HAND_DISTANCE_M if kind == "hand" else None)
         ms, cpu, res = time_render(r, q, poses, intr)
         mask = res.mask
-        row = f"{name:<14}{r.n_faces:>9}{np.median(res.depth[mask]):>9.2f}{100 * mask.mean():>8.1f}{ms:>10.1f}{cpu:>8.1f}"
+        row = f"{name:<18}{r.n_faces:>9}{np.median(res.depth[mask]):>9.2f}{100 * mask.mean():>8.1f}{ms:>10.1f}{cpu:>8.1f}"
         try:
             rd = RobotRenderer(path, W, H, decimate=args.decimate)
         except ImportError as exc:

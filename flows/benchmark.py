@@ -26,7 +26,7 @@ from handedit.embodiments import get_embodiment
 from handedit.reasons import Reason
 from storage import Unit, open_store
 from storage.benchmark import (BenchDir, BenchIOError, append_jsonl, decode_image, encode_png, iter_jsonl, read_json,
-                               write_bytes, write_image, write_json, write_jsonl)
+                               write_bytes, write_image, write_json, write_jsonl, write_text)
 from storage.layout import SCOPE_MASK
 from storage.store import now_iso
 
@@ -265,7 +265,8 @@ def write_report(bench: str | Path, editors: list[str] | None = None) -> dict[st
 
     out = BenchDir(Path(bench))
     results = out.root / "results"
-    names = editors or sorted(p.name for p in results.iterdir() if (p / "summary.json").is_file()) if results.is_dir() else []
+    found = sorted(p.name for p in results.iterdir() if (p / "summary.json").is_file()) if results.is_dir() else []
+    names = editors or found
     if not names:
         raise BenchIOError(f"no results under {results}; run `handedit bench evaluate` first")
     summaries = {n: read_json(out.results(n) / "summary.json") for n in names}

@@ -10,7 +10,7 @@ import numpy as np
 import zarr
 from prefect import task
 
-from handedit.reasons import Reason, combine, gate
+from handedit.reasons import combine, gate
 from handedit.vision.restore_background import RestoreConfig, restore_background as restore
 from storage import Unit, read_chunk
 from storage.layout import SCOPE_MASK
@@ -24,19 +24,10 @@ def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     src = read_chunk(root, Unit("ingest", clip), ["frames"], lo, hi)
     seg = read_chunk(root, Unit("segment", clip), [mask_name, "status"], lo, hi)
     usable = gate(seg["status"])  # frames whose masks can be trusted, as sources or targets
-    window = np.flatnonzero(usable)
-    in_chunk = np.arange(job.start - lo, job.stop - lo)
-    ready = usable[in_chunk]
-    background = np.zeros((job.n, *src["frames"].shape[1:]), np.uint8)
-    filled = np.zeros(job.n, np.float32)
-    own = np.full(job.n, int(Reason.UPSTREAM), np.int16)
-    method = ""
-    if ready.any():
-        targets = np.searchsorted(window, in_chunk[ready])
-        result = restore(src["frames"][window], seg[mask_name][window], targets, RestoreConfig(**job.params))
-        background[ready], filled[ready], own[ready] = result.background, result.filled_from_video, result.status
-        method = result.method
-    return StageOutput({"background": background, "filled_from_video": filled}, combine(own, ready), method=method)
+    targets = np.arange(job.start - lo, job.stop - lo)
+    result = restore(src["frames"], seg[mask_name], targets, RestoreConfig(**job.params), frame_ok=usable)
+    arrays = {"background": result.background, "filled_from_video": result.filled_from_video}
+    return StageOutput(arrays, combine(result.status, usable[targets]), method=result.method)
 
 
 @task(**stage_options("restore_background"))

@@ -182,3 +182,21 @@ def test_missing_assets_reject_only_that_embodiment(tmp_path, monkeypatch, prefe
     assert (root[Unit("qc", clip[0].clip_id, embodiment="shadow").path]["status"][:] == Reason.UPSTREAM).all()
     assert (root[Unit("qc", clip[0].clip_id, embodiment=EMB).path]["status"][:] == Reason.OK).any()
     assert summary["stages"]["retarget"]["failed"] == 1
+
+
+def test_real_video_without_keypoints(tmp_path, real_video, prefect_api, dask_cluster):
+    clip = VideoSpec(path=real_video, clip_id="real", max_frames=F)
+    config = make_config(tmp_path / "handedit.zarr", dask_cluster, clips=[clip])
+    run_curate(config)
+    root = open_store(config.out)
+    frames = root[Unit("ingest", "real").path]["frames"]
+    assert frames.shape == (F, 720, 1280, 3) and frames[F - 1].std() > 10  # real pixels
+    seg = root[Unit("segment", "real").path]
+    hand_fraction = seg["handarm_mask"][:].mean(axis=(1, 2))
+    assert ((hand_fraction > 0.005) & (hand_fraction < 0.6)).all(), hand_fraction  # found a hand, not the scene
+    ret = root[Unit("retarget", "real", embodiment=EMB).path]["status"][:]
+    assert (ret == Reason.NO_KEYPOINTS).all()
+    ledger = read_ledger(root)
+    rows = ledger[(ledger["stage"] == "retarget") & (ledger["clip"] == "real")]
+    assert sorted(rows["frame"]) == list(range(F)) and set(rows["reason_name"]) == {"NO_KEYPOINTS"}
+    assert (root[Unit("qc", "real", embodiment=EMB).path]["status"][:] == Reason.UPSTREAM).all()

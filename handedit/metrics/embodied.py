@@ -57,9 +57,18 @@ def struct_fidelity(dinov2: OnnxEncoder, pred: np.ndarray, gt: np.ndarray, roi: 
     return 0.5 * (1.0 + cosine(e[0], e[1]))
 
 
+_SRGB_TO_XYZ = np.array([[0.412453, 0.357580, 0.180423], [0.212671, 0.715160, 0.072169], [0.019334, 0.119193, 0.950227]])
+_D65 = np.array([0.950456, 1.0, 1.088754])
+
+
 def rgb_to_lab(rgb: np.ndarray) -> np.ndarray:
-    """uint8 sRGB -> CIELAB (D65): L in [0,100], a/b roughly [-128,127]."""
-    return cv2.cvtColor(np.ascontiguousarray(rgb).astype(np.float32) / 255.0, cv2.COLOR_RGB2Lab)
+    """uint8 sRGB -> CIELAB (D65, float64): L in [0,100]. Exact formulas (OpenCV's float
+    path quantises a/b to 1/64, enough to move Delta E by ~0.1)."""
+    c = np.asarray(rgb, np.float64) / 255.0
+    lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    xyz = lin @ _SRGB_TO_XYZ.T / _D65
+    f = np.where(xyz > (6 / 29) ** 3, np.cbrt(xyz), xyz / (3 * (6 / 29) ** 2) + 4 / 29)
+    return np.stack([116 * f[..., 1] - 16, 500 * (f[..., 0] - f[..., 1]), 200 * (f[..., 1] - f[..., 2])], axis=-1)
 
 
 def delta_e_lab(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:

@@ -105,9 +105,10 @@ class OnnxEncoder:
         out = np.empty((len(images), 3, hw[0], hw[1]), np.float32)
         mean, std = np.asarray(self.spec.mean, np.float32), np.asarray(self.spec.std, np.float32)
         for i, im in enumerate(images):
-            if im.shape[:2] != hw:
-                im = cv2.resize(im, (hw[1], hw[0]), interpolation=cv2.INTER_AREA if im.shape[0] > hw[0] else cv2.INTER_LINEAR)
-            x = (im.astype(np.float32) / 255.0 - mean) / std
+            x = im.astype(np.float32) / 255.0  # resize in float: no uint8 rounding of the averages
+            if x.shape[:2] != hw:
+                x = cv2.resize(x, (hw[1], hw[0]), interpolation=cv2.INTER_AREA if x.shape[0] > hw[0] else cv2.INTER_LINEAR)
+            x = (x - mean) / std
             out[i] = x.transpose(2, 0, 1)
         return out
 

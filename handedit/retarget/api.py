@@ -1,6 +1,9 @@
 """Retarget a chunk of MANO-order keypoints onto one embodiment.
 
-Frames are solved in order; each warm-starts from the last solved frame (primal and
+Hybrid mode (``cfg.hybrid``): a cold frame (the first of a chunk, or every frame without
+warm starts) is first aligned by vector retargeting (bone vectors, scaled to the robot),
+then refined by position retargeting under the joint limits (the palm-frame guess is
+refined too and the lower objective kept). Frames are solved in order; each warm-starts from the last solved frame (primal and
 bound multipliers) and is pulled towards it by the smoothness term. A frame whose
 required keypoints (wrist, index/middle/pinky MCP: the palm frame) are invalid gets
 ``Reason.NO_KEYPOINTS`` and the pose of the nearest solved frame; the chunk never aborts.
@@ -52,6 +55,18 @@ def _clip_f32(q: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.clip(q.astype(np.float32), lo32, hi32)
 
 
+def _cold_solve(rt: Retargeter, cfg: RetargetConfig, targets, w, q0, pose0, q_prev=None, prev_pose=None):
+    """Hybrid cold start: position-refine both the vector-mode alignment and the palm-frame
+    guess, keep the lower objective (vector mode alone can settle in a worse basin)."""
+    sol = rt.solve(targets, w, q0, pose0, q_prev=q_prev, prev_pose=prev_pose)
+    if cfg.hybrid:
+        qv, pv = rt.vector_init(targets, w, q0, pose0)
+        alt = rt.solve(targets, w, qv, pv, q_prev=q_prev, prev_pose=prev_pose)
+        if alt.cost < sol.cost:
+            sol = alt
+    return sol
+
+
 def retarget(
     keypoints: np.ndarray,
     keypoints_valid: np.ndarray,
@@ -89,13 +104,14 @@ def retarget(
         if prev is None:
             q0 = rt.q_neutral if q_anchor is None else q_anchor
             pose0 = rt.init_pose(keypoint_palm_frame(kp[i]))
-            sol = rt.solve(targets, w, q0, pose0, q_prev=q_anchor)
+            sol = _cold_solve(rt, cfg, targets, w, q0, pose0, q_prev=q_anchor)
         else:
             if cfg.warm_start:
                 q0, pose0, warm = prev.q, prev.camera_from_root, prev
-            else:  # cold: the palm-frame initialisation, neutral joints, no multipliers
-                q0, pose0, warm = rt.q_neutral, rt.init_pose(keypoint_palm_frame(kp[i])), None
-            sol = rt.solve(targets, w, q0, pose0, q_prev=prev.q, prev_pose=prev.camera_from_root, warm=warm)
+                sol = rt.solve(targets, w, q0, pose0, q_prev=prev.q, prev_pose=prev.camera_from_root, warm=warm)
+            else:  # cold: the palm-frame (and vector-mode) initialisation, neutral joints, no multipliers
+                sol = _cold_solve(rt, cfg, targets, w, rt.q_neutral, rt.init_pose(keypoint_palm_frame(kp[i])),
+                                  q_prev=prev.q, prev_pose=prev.camera_from_root)
         solver_status[i] = sol.status
         if not sol.ok:
             status[i] = Reason.SOLVER_FAILED

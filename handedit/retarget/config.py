@@ -17,7 +17,7 @@ class RetargetConfig(BaseModel):
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
-    VERSION: ClassVar[int] = 1
+    VERSION: ClassVar[int] = 2
 
     wrist_weight: float = Field(1.0, ge=0)
     fingertip_weight: float = Field(1.0, ge=0)
@@ -31,6 +31,7 @@ class RetargetConfig(BaseModel):
     reg_q: float = Field(1e-4, ge=0)  # pull towards the neutral pose: resolves redundant joints
     max_iter: int = Field(100, ge=1)
     tol: float = Field(1e-6, gt=0)
+    hybrid: bool = True  # vector-mode coarse alignment before the position solve on cold frames
     warm_start: bool = True  # primal + multipliers from the previous frame of the chunk
     fingertip_reject_mm: float = Field(50.0, gt=0)
     wrist_reject_mm: float = Field(50.0, gt=0)

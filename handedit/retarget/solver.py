@@ -22,7 +22,7 @@ import numpy as np
 
 from handedit.embodiments.kinematics import get_kinematics
 from handedit.embodiments.roster import UrdfAsset
-from handedit.keypoints import FINGERTIPS, WRIST
+from handedit.keypoints import FINGERTIPS, JOINT_INDEX, PARENT, WRIST
 from handedit.retarget.config import RetargetConfig
 
 CM = 100.0  # metres -> centimetres inside the cost
@@ -42,6 +42,7 @@ class FrameSolution:
     x: np.ndarray  # raw decision vector (warm start)
     lam_x: np.ndarray  # bound multipliers (warm start)
     status: str
+    cost: float = float("inf")
 
 
 def _cayley_sx(c: ca.SX) -> ca.SX:
@@ -116,12 +117,78 @@ class Retargeter:
                 "warm_start_mult_bound_push": 1e-6, "mu_init": 1e-4,
             })
         self.solver = ca.nlpsol("retarget", "ipopt", {"x": x, "p": p, "f": cost}, opts)
+        self._build_vector_solver(qf, t, c, P_root, R_ref, Y, W, kps, cfg)
         inf = 1e20
         lo = np.where(np.isfinite(self.lower[self.free]), self.lower[self.free], -inf)
         hi = np.where(np.isfinite(self.upper[self.free]), self.upper[self.free], inf)
         self.lbx = np.concatenate([lo, np.full(6, -inf)])
         self.ubx = np.concatenate([hi, np.full(6, inf)])
         self.nf, self.K = nf, K
+
+    def _build_vector_solver(self, qf, t, c, P_root, R_ref, Y, W, kps, cfg: RetargetConfig) -> None:
+        """Vector mode (hybrid stage 1): match bone directions/lengths, scaled to the robot.
+
+        Each correspondence k is paired with its nearest MANO ancestor the robot also has
+        (the wrist otherwise); the cost is sum_k w_k |R (P_k - P_a) - s (Y_k - Y_a)|^2 with s
+        the robot/human palm-length ratio. Translation does not enter it (a tiny pull keeps
+        it at its start), so the result is a kinematic-tree-aware coarse pose that the
+        position stage then refines without having to unfold a bad local minimum.
+        """
+        present = {k.mano: i for i, k in enumerate(kps)}
+        pairs = []
+        for i, k in enumerate(kps):
+            if k.mano == WRIST:
+                continue
+            a = PARENT[k.mano]
+            while a != WRIST and a not in present:
+                a = PARENT[a]
+            if a in present:
+                pairs.append((i, present[a]))
+            if k.mano in FINGERTIPS and a != WRIST and WRIST in present:  # whole-finger vector too
+                pairs.append((i, present[WRIST]))
+        self._vec_pairs = pairs
+        s_ = ca.SX.sym("s")
+        t0 = ca.SX.sym("t0", 3)
+        R = R_ref @ _cayley_sx(c)
+        cost = 0
+        for i, a in pairs:
+            e = (R @ (P_root[:, i] - P_root[:, a]) - s_ * (Y[:, i] - Y[:, a])) * CM
+            cost += W[i] * ca.sumsqr(e)
+        cost += 1e-6 * ca.sumsqr((t - t0) * CM) + cfg.reg_q * ca.sumsqr(qf - ca.SX(self.q_neutral[self.free]))
+        x = ca.vertcat(qf, t, c)
+        p = ca.vertcat(ca.vec(Y), W, ca.vec(R_ref), s_, t0)
+        opts = {"print_time": False, "ipopt": {"print_level": 0, "sb": "yes", "max_iter": 60, "tol": 1e-4,
+                                               "acceptable_tol": 1e-3, "mu_strategy": "adaptive"}}
+        self.vec_solver = ca.nlpsol("retarget_vec", "ipopt", {"x": x, "p": p, "f": cost}, opts)
+        mid, wr = present.get(JOINT_INDEX["middle_mcp"]), present.get(WRIST)
+        P0 = np.asarray(self._points_fn(self.q_neutral), float)
+        self._robot_palm_len = float(np.linalg.norm(P0[:, mid] - P0[:, wr])) if mid is not None and wr is not None else 0.0
+
+    def vector_init(self, targets: np.ndarray, weights: np.ndarray, q0: np.ndarray, pose0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Coarse (q, camera_from_root) from vector mode; the wrist is then put on its target."""
+        mid, wr = JOINT_INDEX["middle_mcp"], WRIST
+        rows = {int(m): i for i, m in enumerate(self.mano_idx)}
+        if mid not in rows or wr not in rows or not self._robot_palm_len:
+            return q0, pose0
+        human = float(np.linalg.norm(targets[rows[mid]] - targets[rows[wr]]))
+        scale = self._robot_palm_len / human if human > 1e-4 else 1.0
+        qf0 = np.clip(q0[self.free], self.lower[self.free], self.upper[self.free])
+        x0 = np.concatenate([qf0, pose0[:3, 3], np.zeros(3)])
+        p = np.concatenate([targets.T.reshape(-1, order="F"), weights, pose0[:3, :3].reshape(-1, order="F"), [scale], pose0[:3, 3]])
+        try:
+            sol = self.vec_solver(x0=x0, p=p, lbx=self.lbx, ubx=self.ubx)
+            xs = np.asarray(sol["x"], float).ravel()
+        except RuntimeError:
+            return q0, pose0
+        if not np.all(np.isfinite(xs)):
+            return q0, pose0
+        q = self.q_locked.copy()
+        q[self.free] = np.clip(xs[: self.nf], self.lower[self.free], self.upper[self.free])
+        pose = np.eye(4)
+        pose[:3, :3] = pose0[:3, :3] @ _cayley_np(xs[self.nf + 3:])
+        P = np.asarray(self._points_fn(q), float)
+        pose[:3, 3] = targets[rows[wr]] - pose[:3, :3] @ P[:, rows[wr]]
+        return q, pose
 
     # -- numeric helpers ------------------------------------------------------------------
     def robot_points(self, q: np.ndarray, camera_from_root: np.ndarray) -> np.ndarray:
@@ -163,8 +230,9 @@ class Retargeter:
             status = str(st.get("return_status", ""))
             xs = np.asarray(sol["x"], float).ravel()
             lam = np.asarray(sol["lam_x"], float).ravel()
+            f = float(sol["f"])
         except RuntimeError as e:  # casadi raises on hard IPOPT errors
-            status, xs, lam = f"exception: {e}", x0, np.zeros_like(x0)
+            status, xs, lam, f = f"exception: {e}", x0, np.zeros_like(x0), float("inf")
         ok = status not in _FAIL and not status.startswith("exception") and bool(np.all(np.isfinite(xs)))
         if not ok:
             xs = x0
@@ -173,7 +241,7 @@ class Retargeter:
         pose = np.eye(4)
         pose[:3, :3] = R_ref @ _cayley_np(xs[self.nf + 3:])
         pose[:3, 3] = xs[self.nf: self.nf + 3]
-        return FrameSolution(q, pose, ok, xs, lam, status)
+        return FrameSolution(q, pose, ok, xs, lam, status, f if ok else float("inf"))
 
 
 def _cayley_np(c: np.ndarray) -> np.ndarray:

@@ -28,7 +28,7 @@ import pydantic
 import trimesh
 from scipy.spatial.transform import Rotation, Slerp
 
-from handedit.camera import CV_TO_GL, Intrinsics
+from handedit.camera import CV_TO_GL, Intrinsics, look_at
 from handedit.sources import _hand_model as hm
 from handedit.sources.base import ClipChunk, ClipInfo, SourceError
 
@@ -91,16 +91,6 @@ def _rt(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 def _rz(a: float) -> np.ndarray:
     return Rotation.from_euler("z", a).as_matrix()
-
-
-def look_at_cv(eye: np.ndarray, target: np.ndarray, up=np.array([0.0, 0.0, 1.0])) -> np.ndarray:
-    """world_from_camera of an upright OpenCV camera (x right, y down, z forward)."""
-    z = np.asarray(target, float) - np.asarray(eye, float)
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    return _rt(np.stack([x, y, z], axis=1), np.asarray(eye, float))
 
 
 # ----------------------------------------------------------------------------- object
@@ -389,7 +379,7 @@ def frame_state(plan: ClipPlan, t: int, n_frames: int) -> FrameState:
 
     sway = plan.sway_amp * np.sin(2 * np.pi * plan.sway_freq * u + plan.sway_phase)
     follow = np.array([0.0, 0.0, 0.5]) * _lift_offset(plan, u)[2]
-    T_wc = look_at_cv(plan.eye + sway, plan.target + 0.6 * sway[[1, 2, 0]] + follow)
+    T_wc = look_at(plan.eye + sway, plan.target + 0.6 * sway[[1, 2, 0]] + follow)
 
     wobble = Rotation.from_euler("xy", 0.08 * np.sin(2 * np.pi * 0.7 * u + plan.light_phase + np.array([0, 1]))).as_matrix()
     zl = -(wobble @ plan.key_dir)

@@ -1,0 +1,178 @@
+"""The benchmark end to end: curate a tiny synthetic store, build the test set with a
+reference bank, run editors through the command and HTTP adapters, score them with
+small ONNX encoders and a fake judge on 127.0.0.1 (Prefect flow on Dask), report.
+
+The oracle editor (returns the pseudo-GT) must beat the copy-the-source editor on every
+similarity metric, and the report must say so; bad manifest lines, missing images
+and wrong-size predictions are per-item errors while the rest is scored.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from _bench_onnx import write_encoders
+from _fake_openai import FakeOpenAI
+from flows.benchmark import build_testset, editor_cost, export_manifest, load_manifest, run_editor, write_report
+from flows.config import ClusterConfig, CurateConfig
+from flows.curate import run_curate
+from flows.evaluate import EvaluateConfig, run_evaluate
+from handedit.benchmark.editors import CommandEditor, HttpEditorConfig, HttpImageEditor
+from handedit.benchmark.manifest import TOOLKIT_FIELDS
+from handedit.embodiments import get_embodiment
+from handedit.metrics.vlm import JudgeConfig
+from handedit.render.bank import BankConfig, render_bank_views
+from handedit.sources.synthetic import make_clip_specs
+from storage.bank import BankEntry, write_bank_entry
+from storage.benchmark import BenchDir, iter_jsonl, read_image, read_mask, write_image
+
+EMB = "allegro"
+N_SOURCES = 4
+SIMILARITY = {  # metric -> higher is better
+    "psnr_full": True, "psnr_bg": True, "psnr_roi": True, "ssim_full": True, "ssim_bg": True, "ssim_roi": True,
+    "lpips_full": False, "lpips_bg": False, "lpips_roi": False, "fid_full": False, "fid_roi": False,
+    "struct_fidelity": True, "id_fidelity": True,
+}
+
+
+@pytest.fixture(scope="module")
+def bench(tmp_path_factory, prefect_api, dask_cluster):
+    tmp = tmp_path_factory.mktemp("bench")
+    specs = make_clip_specs(1, seed=5, n_frames=8, width=160, height=120)
+    cfg = CurateConfig(out=tmp / "handedit.zarr", clips=specs, embodiments=[EMB], frames_per_chunk=8,
+                       cluster=ClusterConfig(address=dask_cluster.scheduler_address))
+    run_curate(cfg)
+    e = get_embodiment(EMB)
+    r = render_bank_views(EMB, BankConfig(views=2, width=64, height=64))
+    write_bank_entry(tmp / "bank.zarr", BankEntry(EMB, e.name, e.track, e.description, r.rgb, r.mask,
+                                                  r.camera_from_root, r.qpos, r.K), {})
+    meta = build_testset(cfg.out, tmp / "bench", N_SOURCES, bank=tmp / "bank.zarr")
+    return {"dir": tmp / "bench", "meta": meta, "models": write_encoders(tmp / "models"), "cluster": dask_cluster, "tmp": tmp}
+
+
+def test_testset_and_toolkit_manifest(bench):
+    out = BenchDir(bench["dir"])
+    items, errors = load_manifest(out.manifest)
+    assert errors == [] and len(items) == len(bench["meta"]["items"]) >= 2
+    assert bench["meta"]["tracks"]["hand"] == [EMB]
+    for _, obj, _ in iter_jsonl(out.manifest):
+        assert set(TOOLKIT_FIELDS) <= set(obj) and not obj["src_path"].startswith("/")  # relative, portable
+    it = items[0]
+    assert it.replacement_scope == "hand" and it.target_name == "Allegro" and it.pred_path == ""
+    src, gt = read_image(it.src_path), read_image(it.gt_path)
+    human, robot, roi = read_mask(it.human_mask_path), read_mask(it.robot_mask_path), read_mask(it.test_mask_path)
+    assert src.shape == gt.shape == (120, 160, 3) and not np.array_equal(src, gt)
+    assert human.any() and robot.any() and np.array_equal(roi, human | robot)
+    assert it.object_mask_path and read_mask(it.object_mask_path).any()
+    assert len(it.urdf_ref_paths) == 2 and read_mask(it.urdf_mask_paths[0]).any()
+    assert it.instruction.startswith("Replace the human hand region with the robot shown in the reference render: Allegro, described as a compact black")
+    assert it.instruction.endswith("Preserve the original hand-object interaction, object state, and surrounding scene structure.")
+
+
+@pytest.fixture(scope="module")
+def scored(bench):
+    d = bench["dir"]
+    copy = run_editor(d, "copy", CommandEditor("cp {src} {out}", model="copy"), concurrency=2)
+    oracle = run_editor(d, "oracle", CommandEditor("cp {gt} {out}", model="oracle"), concurrency=2)
+    assert copy.failed == oracle.failed == 0 and copy.ok == oracle.ok == len(bench["meta"]["items"])
+    summaries = {}
+    with FakeOpenAI() as server:
+        judge = JudgeConfig(base_url=server.base_url, model="gpt-4o", cache_dir=d / "vlm_cache", backoff_s=0.0)
+        for name in ("copy", "oracle"):
+            out = BenchDir(d).results(name)
+            manifest = export_manifest(d, name, out / "manifest.jsonl")
+            cfg = EvaluateConfig(manifest=manifest, out=out, editor=name, model_dir=bench["models"], judge=judge,
+                                 chunk_size=2, cluster=ClusterConfig(address=bench["cluster"].scheduler_address))
+            summaries[name] = run_evaluate(cfg)
+        n_chat = sum(r["kind"] == "chat" for r in server.requests)
+    return summaries, n_chat
+
+
+def test_oracle_beats_copy_and_report_shows_it(bench, scored):
+    summaries, n_chat = scored
+    n = len(bench["meta"]["items"])
+    assert n_chat == 2 * 2 * n  # SC + PQ per item and editor
+    c, o = summaries["copy"]["tracks"]["hand"]["metrics"], summaries["oracle"]["tracks"]["hand"]["metrics"]
+    assert summaries["copy"]["n_errors"] == summaries["oracle"]["n_errors"] == 0
+    assert summaries["oracle"]["skipped"] == []
+    for m, hib in SIMILARITY.items():
+        assert c[m] is not None and o[m] is not None, m
+        assert (o[m] > c[m]) if hib else (o[m] < c[m]), (m, o[m], c[m])
+    assert o["psnr_full"] == 100.0 and o["lpips_full"] == pytest.approx(0, abs=1e-9) and o["fid_full"] == pytest.approx(0, abs=1e-3)
+    assert o["vlm"] == pytest.approx(np.sqrt(0.75 * 0.5)) and c["vlm"] == 0.0
+    # the copy editor leaves the human hand in place: interaction is perfect but removal is not
+    assert c["interaction"] == pytest.approx(1.0) and c["removal"] < o["removal"]
+    written = write_report(bench["dir"])
+    rep = BenchDir(bench["dir"]).report
+    md = (rep / "tables.md").read_text()
+    oracle_row = next(line for line in md.splitlines() if line.startswith("| oracle |") and "100.00" in line)
+    copy_row = next(line for line in md.splitlines() if line.startswith("| copy |") and "<u>" in line)
+    assert oracle_row.count("**") >= 2 * 11 and "<u>" not in oracle_row  # best on every generic column
+    assert "**" not in copy_row
+    tex = (rep / "hand_generic.tex").read_text()
+    assert r"oracle & \textbf{100.00}" in tex and r"\underline{" in tex
+    rows = list(csv.DictReader(open(rep / "hand_generic.csv")))
+    assert {r["model"] for r in rows} == {"copy", "oracle"}
+    radar = read_image(rep / "hand_radar.png")
+    assert radar.shape[0] > 300 and (radar < 250).any() and any(p.name == "hand_radar.png" for p in written["hand"])
+
+
+def test_per_item_errors_while_the_rest_is_scored(bench, scored):
+    d, tmp = bench["dir"], bench["tmp"]
+    broken = tmp / "broken"
+    manifest = export_manifest(d, "copy", broken / "manifest.jsonl")
+    lines = manifest.read_text().splitlines()
+    recs = [json.loads(x) for x in lines]
+    for r in recs:  # private copies of the predictions
+        dst = broken / "preds" / f"{r['id']}.png"
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(BenchDir(d).prediction("copy", r["id"]), dst)
+        r["pred_path"] = str(dst)
+    (broken / "preds" / f"{recs[0]['id']}.png").unlink()  # missing image
+    small = read_image(broken / "preds" / f"{recs[1]['id']}.png")[:60, :80]
+    write_image(broken / "preds" / f"{recs[1]['id']}.png", small)  # wrong size
+    text = "\n".join(json.dumps(r) for r in recs) + '\n{"id": "truncated", "replacement_scope": \n'
+    manifest.write_text(text)
+    cfg = EvaluateConfig(manifest=manifest, out=broken / "results", editor="broken", model_dir=bench["models"],
+                         judge=None, chunk_size=3, cluster=ClusterConfig(address=bench["cluster"].scheduler_address))
+    s = run_evaluate(cfg)
+    errs = {e["id"]: e["error"] for e in s["errors"]}
+    assert len(errs) == 3, errs
+    assert "image not found" in errs[recs[0]["id"]] and f"{recs[0]['id']}.png" in errs[recs[0]["id"]]
+    assert "80x60" in errs[recs[1]["id"]] and "160x120" in errs[recs[1]["id"]]
+    line_no = len(recs) + 1
+    assert f"manifest.jsonl:{line_no}: not valid JSON" in errs[f"line-{line_no}"]
+    assert s["tracks"]["hand"]["n_scored"] == len(recs) - 2
+    assert s["tracks"]["hand"]["metrics"]["psnr_full"] is not None
+    assert set(s["skipped"]) == {"vlm_sc", "vlm_pq", "vlm"}
+    rows = list(csv.DictReader(open(broken / "results" / "items.csv")))
+    assert sum(1 for r in rows if r["error"]) == 3 and sum(1 for r in rows if not r["error"] and r["psnr_full"]) == len(recs) - 2
+
+
+def test_http_editor_cost_resume_and_failures(bench):
+    d = bench["dir"]
+    with FakeOpenAI() as server:
+        editor = HttpImageEditor(HttpEditorConfig(base_url=server.base_url, model="gpt-image-2", api_key="sk-x"))
+        first = run_editor(d, "gpt-image-2", editor, concurrency=2, limit=2)
+        assert (first.ran, first.ok, first.failed) == (2, 2, 0)
+        assert first.cost_usd == pytest.approx(2 * 0.211)
+        edits = [r for r in server.requests if r["kind"] == "edit"]
+        assert len(edits) == 2 and all(r["n_images"] == 2 and r["fields"]["model"] == "gpt-image-2" for r in edits)
+        assert edits[0]["fields"]["prompt"].startswith("Replace the human hand region") and edits[0]["auth"] == "Bearer sk-x"
+        # resumed: the two done items are skipped, the rest run
+        n = len(bench["meta"]["items"])
+        second = run_editor(d, "gpt-image-2", editor, concurrency=2)
+        assert (second.ran, second.skipped) == (n - 2, 2)
+        assert editor_cost(d, "gpt-image-2") == pytest.approx(n * 0.211)
+        it0 = load_manifest(BenchDir(d).manifest)[0][0]
+        assert np.array_equal(read_image(BenchDir(d).prediction("gpt-image-2", it0.id)), read_image(it0.src_path))
+    failing = run_editor(d, "broken-cmd", CommandEditor("echo model crashed >&2; exit 3"), max_tries=3, backoff_s=0)
+    assert failing.ok == 0 and failing.failed == len(bench["meta"]["items"])
+    recs = [r for _, r, _ in iter_jsonl(BenchDir(d).records("broken-cmd"))]
+    assert all(r["status"] == "failed" and r["attempts"] == 1 and "exited 3" in r["error"] and "model crashed" in r["error"] for r in recs)
+    assert not any(BenchDir(d).predictions("broken-cmd").glob("*.png"))
