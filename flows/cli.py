@@ -159,7 +159,10 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="handedit", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(
+        prog="handedit",
+        description="Egocentric human-hand video -> paired robot-hand images (curation), and the HandEdit benchmark.",
+    )
     sub = p.add_subparsers(dest="command", required=True)
 
     c = sub.add_parser("curate", help="run the curation flow (segment -> ... -> harmonize -> QC)")

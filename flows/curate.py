@@ -12,9 +12,11 @@ records each chunk's provenance and rejections as results arrive.
 from __future__ import annotations
 
 import fnmatch
+import hashlib
 import json
 import subprocess
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 
 from prefect import flow, get_run_logger
@@ -114,9 +116,31 @@ def _create_units(root, config: CurateConfig, clip: ClipPlan, embs: list[Embodim
 
 
 def stage_version_params(config: CurateConfig, stage: str) -> tuple[int, dict]:
-    """A stage's code version (its config class's VERSION) and parameters."""
+    """A stage's code version (its config class's VERSION) and parameters; a model file
+    counts by content, so replacing the weights at the same path re-runs the stage."""
     cfg = config.stage_config(stage)
-    return int(getattr(type(cfg), "VERSION", 1)), cfg.model_dump(mode="json")
+    params = cfg.model_dump(mode="json")
+    if params.get("model_path"):
+        params["model_sha256"] = file_digest(Path(params["model_path"]))
+    return int(getattr(type(cfg), "VERSION", 1)), params
+
+
+def file_digest(path: Path) -> str:
+    """sha256 of a file, cached by (path, size, mtime): keys are computed per chunk node."""
+    try:
+        st = path.stat()
+    except OSError:
+        return "missing"
+    return _file_digest(str(path), st.st_size, st.st_mtime_ns)
+
+
+@lru_cache(maxsize=64)
+def _file_digest(path: str, size: int, mtime_ns: int) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def _matches_fault(config: CurateConfig, unit: Unit) -> bool:

@@ -83,15 +83,27 @@ def build_nodes(
         ret, ren, comp, harm, qc = (Unit(st, c, embodiment=emb) for st in ("retarget", "render", "composite", "harmonize", "qc"))
         for k, (s, e) in enumerate(ranges):
             comp_deps = [Dep(restore, k, ("background", "status")), Dep(ren, k, ("rgba", "depth", "status"))]
-            if clip.has_object:
-                comp_deps.append(Dep(ingest, k, ("object_mask",)))
+            comp_ctx = {**base_ctx, "scope": scope}
+            if clip.has_object:  # object mask + pose, and the source for its mesh (depth occlusion)
+                comp_deps.append(Dep(ingest, k, ("object_mask", "object_pose")))
+                comp_ctx["source"] = clip.source_json
             upstream = [ingest, segment, restore, ret, ren, comp, harm]
             nodes += [
-                Node(ret, k, s, e, [Dep(ingest, k, ("keypoints", "keypoints_valid", "status"))], base_ctx),
+                Node(ret, k, s, e, *_retarget_deps(ingest, k, ranges, scope, base_ctx)),
                 Node(ren, k, s, e, [Dep(ret, k, ("qpos", "root_pose", "status"))], base_ctx, camera),
-                Node(comp, k, s, e, comp_deps, {**base_ctx, "scope": scope}),
+                Node(comp, k, s, e, comp_deps, comp_ctx),
                 Node(harm, k, s, e, [Dep(comp, k, ("image", "robot_mask", "status"))], base_ctx),
                 Node(qc, k, s, e, [Dep(u, k, ("status",)) for u in upstream],
                      {"upstream": [{"stage": u.stage, "clip": u.clip, "scope": u.scope, "embodiment": u.embodiment} for u in upstream]}),
             ]
     return nodes
+
+
+def _retarget_deps(ingest: Unit, k: int, ranges: list[tuple[int, int]], scope: str, ctx: dict) -> tuple[list[Dep], dict]:
+    """Hand-only: the chunk's own keypoints. Hand-arm: the virtual base is fixed per sequence,
+    so every chunk reads the whole clip's keypoints and camera poses (each chunk runs the
+    same deterministic search; a worker caches it) and writes only its own frames."""
+    if scope != "hand_arm":
+        return [Dep(ingest, k, ("keypoints", "keypoints_valid", "status"))], ctx
+    deps = [Dep(ingest, j, ("keypoints", "keypoints_valid", "world_from_camera", "status")) for j in range(len(ranges))]
+    return deps, {**ctx, "track": "hand_arm", "clip_frames": [0, ranges[-1][1]]}

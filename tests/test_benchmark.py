@@ -27,8 +27,12 @@ from handedit.benchmark.manifest import TOOLKIT_FIELDS
 from handedit.embodiments import get_embodiment
 from handedit.metrics.vlm import JudgeConfig
 from handedit.render.bank import BankConfig, render_bank_views
+from handedit.reasons import Reason
+from handedit.sources import open_source
 from handedit.sources.synthetic import make_clip_specs
+from storage import Unit, create_or_open_store, create_unit, write_chunk
 from storage.bank import BankEntry, write_bank_entry
+from storage.store import set_attrs
 from storage.benchmark import BenchDir, iter_jsonl, read_image, read_mask, write_image
 
 EMB = "allegro"
@@ -40,19 +44,64 @@ SIMILARITY = {  # metric -> higher is better
 }
 
 
+def write_curated_store(path, n_frames: int = 6, rejected: tuple[int, ...] = (2,)):
+    """A curated store written through the storage API (what the curate flow leaves
+    behind, without its minute of retargeting and rendering): synthetic source frames
+    with their exact hand/object masks, a robot mask next to the hand, a pseudo-GT
+    that shows the restored background plus a dark-and-white "robot", QC statuses."""
+    src = open_source(make_clip_specs(1, seed=5, n_frames=n_frames, width=160, height=120)[0])
+    info, ch = src.info(), src.read(0, n_frames)
+    clip, f, sizes = info.clip_id, 8, {"H": 120, "W": 160}
+    root = create_or_open_store(path, f, "test")
+    hand = ch.gt["hand_mask"]
+    robot = np.roll(hand, 3, axis=2) | np.roll(hand, -2, axis=1)
+    gt = ch.gt["background"].copy()
+    stripes = (np.indices((120, 160)).sum(0) // 3 % 2).astype(bool)
+    gt[robot & stripes] = (30, 30, 34)
+    gt[robot & ~stripes] = (235, 235, 230)
+    ok = np.full(n_frames, int(Reason.OK), np.int16)
+    qc = ok.copy()
+    qc[list(rejected)] = int(Reason.FINGERTIP_ERROR)
+    for unit, arrays, kw in [
+        (Unit("ingest", clip), {"frames": ch.frames, "object_mask": ch.object_mask, "status": ok}, {"has_object": True, "has_gt": True}),
+        (Unit("segment", clip), {"hand_mask": hand, "handarm_mask": ch.gt["handarm_mask"], "status": ok}, {}),
+        (Unit("composite", clip, embodiment=EMB), {"image": gt, "robot_mask": robot, "status": ok}, {}),
+        (Unit("harmonize", clip, embodiment=EMB), {"image": gt, "status": ok}, {}),
+        (Unit("qc", clip, embodiment=EMB), {"status": qc}, {}),
+    ]:
+        create_unit(root, unit, n_frames, sizes, f, **kw)
+        write_chunk(root, unit, 0, arrays)
+    set_attrs(root, "", {"clips": {clip: {"n_frames": n_frames}}, "embodiments": {EMB: {"scope": "hand", "dof": 16}}})
+    return path, n_frames - len(rejected)
+
+
+def write_bank(path):
+    e = get_embodiment(EMB)
+    r = render_bank_views(EMB, BankConfig(views=2, width=64, height=64))
+    write_bank_entry(path, BankEntry(EMB, e.name, e.track, e.description, r.rgb, r.mask, r.camera_from_root, r.qpos, r.K), {})
+    return path
+
+
 @pytest.fixture(scope="module")
 def bench(tmp_path_factory, prefect_api, dask_cluster):
     tmp = tmp_path_factory.mktemp("bench")
+    store, n_kept = write_curated_store(tmp / "handedit.zarr")
+    meta = build_testset(store, tmp / "bench", N_SOURCES, bank=write_bank(tmp / "bank.zarr"))
+    assert len(meta["items"]) == min(N_SOURCES, n_kept)
+    return {"dir": tmp / "bench", "meta": meta, "models": write_encoders(tmp / "models"), "cluster": dask_cluster, "tmp": tmp}
+
+
+@pytest.mark.slow
+def test_build_from_the_curate_flow(tmp_path, prefect_api, dask_cluster):
+    """The same build on a store made by the real curate flow (covered fast above)."""
     specs = make_clip_specs(1, seed=5, n_frames=8, width=160, height=120)
-    cfg = CurateConfig(out=tmp / "handedit.zarr", clips=specs, embodiments=[EMB], frames_per_chunk=8,
+    cfg = CurateConfig(out=tmp_path / "handedit.zarr", clips=specs, embodiments=[EMB], frames_per_chunk=8,
                        cluster=ClusterConfig(address=dask_cluster.scheduler_address))
     run_curate(cfg)
-    e = get_embodiment(EMB)
-    r = render_bank_views(EMB, BankConfig(views=2, width=64, height=64))
-    write_bank_entry(tmp / "bank.zarr", BankEntry(EMB, e.name, e.track, e.description, r.rgb, r.mask,
-                                                  r.camera_from_root, r.qpos, r.K), {})
-    meta = build_testset(cfg.out, tmp / "bench", N_SOURCES, bank=tmp / "bank.zarr")
-    return {"dir": tmp / "bench", "meta": meta, "models": write_encoders(tmp / "models"), "cluster": dask_cluster, "tmp": tmp}
+    meta = build_testset(cfg.out, tmp_path / "bench", 3, bank=write_bank(tmp_path / "bank.zarr"))
+    items, errors = load_manifest(BenchDir(tmp_path / "bench").manifest)
+    assert errors == [] and len(items) == len(meta["items"]) >= 1
+    assert read_mask(items[0].robot_mask_path).any() and read_image(items[0].gt_path).shape == (120, 160, 3)
 
 
 def test_testset_and_toolkit_manifest(bench):
@@ -67,6 +116,7 @@ def test_testset_and_toolkit_manifest(bench):
     src, gt = read_image(it.src_path), read_image(it.gt_path)
     human, robot, roi = read_mask(it.human_mask_path), read_mask(it.robot_mask_path), read_mask(it.test_mask_path)
     assert src.shape == gt.shape == (120, 160, 3) and not np.array_equal(src, gt)
+    assert "-f000002-" not in " ".join(i.id for i in items)  # QC-rejected frame is not an item
     assert human.any() and robot.any() and np.array_equal(roi, human | robot)
     assert it.object_mask_path and read_mask(it.object_mask_path).any()
     assert len(it.urdf_ref_paths) == 2 and read_mask(it.urdf_mask_paths[0]).any()
@@ -171,7 +221,7 @@ def test_http_editor_cost_resume_and_failures(bench):
         assert editor_cost(d, "gpt-image-2") == pytest.approx(n * 0.211)
         it0 = load_manifest(BenchDir(d).manifest)[0][0]
         assert np.array_equal(read_image(BenchDir(d).prediction("gpt-image-2", it0.id)), read_image(it0.src_path))
-    failing = run_editor(d, "broken-cmd", CommandEditor("echo model crashed >&2; exit 3"), max_tries=3, backoff_s=0)
+    failing = run_editor(d, "broken-cmd", CommandEditor("echo model crashed >&2; exit 3 # {out}"), max_tries=3, backoff_s=0)
     assert failing.ok == 0 and failing.failed == len(bench["meta"]["items"])
     recs = [r for _, r, _ in iter_jsonl(BenchDir(d).records("broken-cmd"))]
     assert all(r["status"] == "failed" and r["attempts"] == 1 and "exited 3" in r["error"] and "model crashed" in r["error"] for r in recs)

@@ -94,3 +94,18 @@ def test_blank_frame_rejected_with_reason_rest_of_clip_proceeds(onnx_run):
     # its chunk-mates still made it through every stage
     same_chunk = [i for i in range(F) if i != BLANK]
     assert (qc[same_chunk] == Reason.OK).sum() >= len(same_chunk) // 2, qc
+
+
+def test_new_weights_at_the_same_path_rerun_only_that_stage(onnx_run, tmp_path):
+    config, _, models = onnx_run
+    path = models["harmonize"]
+    original = path.read_bytes()
+    try:
+        toy.make_harmonizer(tmp_path / "other.onnx", pull=0.8)
+        path.write_bytes((tmp_path / "other.onnx").read_bytes())
+        assert path.read_bytes() != original
+        summary = run_curate(config)
+        ran = {s: c["ran"] for s, c in summary["stages"].items()}
+        assert ran["harmonize"] == T // F and all(n == 0 for s, n in ran.items() if s != "harmonize"), ran
+    finally:
+        path.write_bytes(original)

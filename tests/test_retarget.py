@@ -202,3 +202,91 @@ def test_missing_mesh_error(robots_dir, tmp_path, monkeypatch):
     victim.unlink()
     with pytest.raises(MissingMesh, match=re.escape(victim.name)):
         retarget(np.zeros((1, 21, 3)), np.ones((1, 21), bool), "ability", CFG)
+
+
+# -- hybrid mode, synthetic clips, CLI (issue 4) -----------------------------------------
+
+
+def _synthetic_keypoints(n: int = 8):
+    from handedit.sources.synthetic import SyntheticSpec, frame_keypoints, frame_state, make_plan
+
+    plan = make_plan(SyntheticSpec(n_frames=n, width=64, height=48))
+    kps = []
+    for t in range(n):
+        st = frame_state(plan, t, n)
+        cw = np.linalg.inv(st.world_from_camera)
+        kps.append(frame_keypoints(plan, st) @ cw[:3, :3].T + cw[:3, 3])
+    return np.array(kps), np.ones((n, 21), bool)
+
+
+@pytest.mark.parametrize("emb_id", HAND_IDS)
+def test_synthetic_clip_under_qc_threshold(assets, emb_id):
+    """Known human motion (reach, grasp, lift): every hand stays under the 50 mm QC threshold."""
+    kp, valid = _synthetic_keypoints()
+    r = retarget(kp, valid, emb_id, CFG)
+    assert (r.status == Reason.OK).all(), (r.status, r.solver_status)
+    assert r.fingertip_error_mm.max() < CFG.fingertip_reject_mm and r.wrist_error_mm.max() < CFG.wrist_reject_mm
+    _assert_within_limits(emb_id, r.qpos)
+
+
+def test_hybrid_never_worse_on_cold_frames(assets):
+    kp, valid = _human_trajectory(n=6)
+    for emb_id in ("allegro", "leap"):
+        cold = CFG.model_copy(update={"warm_start": False})
+        h = retarget(kp, valid, emb_id, cold)
+        p = retarget(kp, valid, emb_id, cold.model_copy(update={"hybrid": False}))
+        assert (h.status == Reason.OK).all()
+        # best of (vector-mode alignment, palm-frame guess) after position refinement
+        assert np.all(h.fingertip_error_mm <= p.fingertip_error_mm + 1.0)
+    rt = get_retargeter("allegro", CFG)
+    q, pose = rt.vector_init(kp[0, rt.mano_idx], rt.base_w, rt.q_neutral, np.eye(4))
+    np.testing.assert_allclose(rt.robot_points(q, pose)[rt.wrist_row], kp[0, 0], atol=1e-9)  # wrist put on target
+    assert np.all(q >= rt.lower) and np.all(q <= rt.upper)
+
+
+def test_cli_retarget_round_trip(assets, tmp_path, capsys):
+    from flows.cli import main
+
+    kp, _ = _human_trajectory(n=5)
+    kp[2, 8] = np.nan  # a missing joint is allowed
+    f = tmp_path / "kp.npy"
+    np.save(f, kp)
+    out = tmp_path / "o" / "traj.npz"
+    assert main(["retarget", "--embodiment", "ability", "--keypoints", str(f), "--out", str(out), "--frame", "camera"]) == 0
+    z = np.load(out)
+    rt = get_retargeter("ability", CFG)
+    assert list(z["joint_names"]) == rt.joint_names
+    assert z["qpos"].shape == (5, len(rt.joint_names)) and z["root_pose"].shape == (5, 4, 4)
+    assert z["wrist_pose"].shape == (5, 4, 4) and str(z["frame"]) == "camera"
+    assert (z["fingertip_error_mm"] < 50).all() and (z["status"] == Reason.OK).all()
+    # the wrist pose sits on the human wrist (residual = reported wrist error)
+    d = np.linalg.norm(z["wrist_pose"][:, :3, 3] - kp[:, 0], axis=1) * 1000
+    np.testing.assert_allclose(d, z["wrist_error_mm"], atol=0.05)
+    assert "ability: 5 frames" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("content, message", [
+    ("shape", "expected (T,21,3)"),
+    ("text", "not a readable .npy"),
+    ("mm", "expected metres"),
+    ("missing", "does not exist"),
+    ("nan", "no finite keypoint"),
+])
+def test_cli_rejects_malformed_keypoints(assets, tmp_path, capsys, content, message):
+    from flows.cli import main
+
+    f = tmp_path / "kp.npy"
+    if content == "shape":
+        np.save(f, np.zeros((4, 20, 3)))
+    elif content == "text":
+        f.write_text("wrist 0 0 0\n")
+    elif content == "mm":
+        kp, _ = _human_trajectory(n=2)
+        np.save(f, kp * 1000)
+    elif content == "nan":
+        np.save(f, np.full((2, 21, 3), np.nan))
+    out = tmp_path / "traj.npz"
+    assert main(["retarget", "--embodiment", "allegro", "--keypoints", str(f), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert message in err and str(f) in err and "(T,21,3)" in err
+    assert not out.exists() and not list(tmp_path.glob("*.tmp*"))

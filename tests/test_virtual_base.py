@@ -21,7 +21,7 @@ from handedit.retarget.virtual_base import (
     upright_frame,
 )
 
-EMB = "ur5e_shadow"
+EMB = "ur5_shadow"
 CFG = VirtualBaseConfig()
 UP = np.array([0.0, -1.0, 0.0])  # camera frame: image up
 
@@ -37,7 +37,7 @@ def _true_base() -> np.ndarray:
 
 
 UR5_Q = (0.3, -1.0, 1.2, -0.8, -1.2, 0.2)  # offsets from mid-range: an elbow-up reach
-XARM_Q = (-0.304, -0.023, 0.623, 0.694, -0.228, 0.114, -0.285)  # its elbow height varies across the grid
+XARM_Q = (-0.228, -0.017, 0.467, 0.521, -0.171, 0.086, -0.214)  # its elbow height varies across the grid
 
 
 def _known_sequence(n: int = 6, seed: int = 3, emb: str = EMB, q_off=UR5_Q):
@@ -91,7 +91,7 @@ def test_beyond_reach_is_rejected(assets):
     targets, Tb = _known_sequence(n=4)
     arm = arm_model(EMB)
     far = targets.copy()
-    far[:, :3, 3] += Tb[:3, 0] * 3.0 * arm.reach  # 3 L_r straight ahead of the base
+    far[:, :3, 3] += Tb[:3, 0] * 3.0 * arm.max_reach  # 3 L_r straight ahead of the base
     res = search_virtual_base(far, np.ones(len(far), bool), EMB, CFG.model_copy(update={"n_seeds": 2}), up=UP, init_base=Tb)
     assert res.reason == Reason.NO_VALID_BASE and res.chosen is None and res.ranking == []
     assert all(c.reason == Reason.OUT_OF_REACH for c in res.candidates)
@@ -100,10 +100,10 @@ def test_beyond_reach_is_rejected(assets):
 
 
 def test_support_plane_collision_is_not_ranked_first(assets):
-    emb = "xarm7_ability"
+    emb, cfg = "xarm_ability", CFG.model_copy(update={"n_seeds": 3})
     targets, Tb = _known_sequence(emb=emb, q_off=XARM_Q)
     valid = np.ones(len(targets), bool)
-    free = search_virtual_base(targets, valid, emb, CFG, up=UP, init_base=Tb)
+    free = search_virtual_base(targets, valid, emb, cfg, up=UP, init_base=Tb)
     arm = arm_model(emb)
 
     def lowest(i):  # lowest moving capsule point of candidate i along the sequence (height along UP)
@@ -119,7 +119,7 @@ def test_support_plane_collision_is_not_ranked_first(assets):
     h_plane = h_top + 0.5 * (best_other - h_top) - CFG.link_radius - CFG.plane_margin
     h_plane = max(h_plane, h_top - CFG.link_radius - CFG.plane_margin + 1e-3)
     plane = np.concatenate([UP, [-h_plane]])
-    res = search_virtual_base(targets, valid, emb, CFG, up=UP, support_plane=plane, init_base=Tb)
+    res = search_virtual_base(targets, valid, emb, cfg, up=UP, support_plane=plane, init_base=Tb)
     assert res.candidates[top].reason == Reason.COLLISION
     assert res.ranking and res.ranking[0] != top and res.chosen != top
     assert len(res.candidates) == 27
@@ -152,7 +152,7 @@ def test_collision_primitives():
 
 
 def test_arm_ik_warm_and_cold_agree(assets):
-    arm = arm_model("xarm7_ability")
+    arm = arm_model("xarm_ability")
     mid = (arm.lo_s + arm.hi_s) / 2
     q1 = mid + 0.3
     T1 = arm.wrist_pose(q1)

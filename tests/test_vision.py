@@ -356,3 +356,31 @@ def test_configs_are_versioned():
     for cfg in (SegmentConfig(), RestoreConfig(), CompositeConfig(), HarmonizeConfig()):
         assert isinstance(type(cfg).VERSION, int) and cfg.method == "classical"
         assert "VERSION" not in cfg.model_dump()
+
+
+def test_object_depth_of_a_known_box():
+    """A box facing the camera at a known distance: its depth is the near face's z, its
+    silhouette the projected square (pixel centres at +0.5, the GL renderer's convention)."""
+    import trimesh
+
+    from handedit.camera import Intrinsics
+    from handedit.vision.object_depth import object_depth, object_occluder
+
+    intr = Intrinsics(fx=100.0, fy=100.0, cx=40.0, cy=30.0, width=80, height=60)
+    box = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    pose = np.eye(4)
+    pose[2, 3] = 1.0  # centre 1 m ahead: near face at z = 0.9
+    d = object_depth(box.vertices, box.faces, pose[None], intr)[0]
+    inside = d > 0
+    assert np.allclose(d[inside], 0.9, atol=1e-4)
+    # the near face spans x in [-0.1, 0.1] at z 0.9: u in 40 +- 11.1 px
+    ys, xs = np.nonzero(inside)
+    assert xs.min() == 29 and xs.max() == 50 and ys.min() == 19 and ys.max() == 40
+    behind = pose.copy()
+    behind[2, 3] = -1.0
+    assert not object_depth(box.vertices, box.faces, behind[None], intr).any()
+    m, dd = object_occluder(None, None, None, pose[None], intr)
+    assert m is None and dd is None
+    nan_pose = np.full((1, 4, 4), np.nan)
+    m, dd = object_occluder(np.zeros((1, 60, 80), bool), box.vertices, box.faces, nan_pose, intr)
+    assert dd is None and not m.any()

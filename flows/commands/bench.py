@@ -22,9 +22,9 @@ from pathlib import Path
 
 
 def _defaults() -> None:
-    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
-    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
-    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
+    from flows.cli import _prefect_defaults
+
+    _prefect_defaults()  # telemetry off, quiet logs, a start-up budget for the temporary API
 
 
 def cmd_build(args: argparse.Namespace) -> int:
@@ -36,7 +36,7 @@ def cmd_build(args: argparse.Namespace) -> int:
     except (StoreError, ValueError) as exc:
         print(f"handedit bench build: {exc}", file=sys.stderr)
         return 2
-    for scope, embs in meta["tracks"].items():
+    for scope, embs in ((s, e) for s, e in meta["tracks"].items() if e):
         n = sum(1 for i in meta["items"] if i["scope"] == scope)
         print(f"{scope}: {n} items over {len(embs)} embodiment(s) {embs}")
     print(f"test set: {args.out} (manifest {Path(args.out) / 'manifest.jsonl'})")

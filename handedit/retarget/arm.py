@@ -2,15 +2,13 @@
 hand's wrist link, its nominal reach L_r, a casadi IK solver and capsule geometry for
 collision checks.
 
-Built from the composed hand-arm URDF (dex-urdf ``assembly/``), loaded directly: the
-hand is attached there by its own fixed mount joint, so the "human wrist -> robot wrist"
-SE(3) is the hand's ``wrist_from_root`` (roster) plus the hand URDF's own chain to its
-wrist keypoint link, a link that exists under the same name in both URDFs. The arm
-joints are the actuated joints on the path from the assembly root to that link, minus
-joints the hand retargeter locks (Shadow's WRJ1/WRJ2), which keep their locked values.
-
-Embodiment ids map to an assembly here (``ASSEMBLIES``) until the embodiment roster
-publishes hand-arm entries; ``arm_model`` accepts either.
+Built from the roster's composed hand-arm URDF (``handedit.embodiments.compose``: arm +
+hand + fixed mount), or, for the ids in ``ASSEMBLIES``, from a dex-urdf ``assembly/`` URDF
+loaded directly. The "human wrist -> robot wrist/TCP" SE(3) is fixed per embodiment: the
+hand's ``wrist_from_root`` (roster) plus the hand URDF's own chain to its wrist keypoint
+link, a link present in both URDFs (``name_map`` renames it in the composition). The arm
+joints are the actuated joints on the path from the root to that link, minus joints the
+hand retargeter locks (Shadow's WRJ1/WRJ2), which keep their locked values.
 """
 
 from __future__ import annotations
@@ -47,20 +45,33 @@ class IKSolution:
     lam_x: np.ndarray
 
 
-class ArmModel:
-    """IK and geometry of one hand-arm assembly (build once per process: ``arm_model``)."""
+@dataclass(frozen=True)
+class ArmSource:
+    """Where an ArmModel comes from: the composed (or assembly) URDF and the hand's names in it."""
 
-    def __init__(self, embodiment_id: str, assembly: Path, hand_id: str):
-        self.embodiment_id, self.assembly, self.hand_id = embodiment_id, Path(assembly), hand_id
-        ra = resolve_asset(get_embodiment(hand_id))
+    embodiment_id: str
+    urdf_path: Path
+    hand_id: str  # embodiment id whose hand retargeter produces the wrist targets
+    name_map: dict  # hand URDF link/joint name -> name in urdf_path (identity when absent)
+    reach: float | None  # L_r from the roster/composition; None: computed here
+
+
+class ArmModel:
+    """IK and geometry of one hand-arm robot (build once per process: ``arm_model``)."""
+
+    def __init__(self, src: ArmSource):
+        self.embodiment_id, self.assembly, self.hand_id = src.embodiment_id, Path(src.urdf_path), src.hand_id
+        self.name_map = dict(src.name_map)
+        ra = resolve_asset(get_embodiment(src.hand_id))
         self.hand_kin = get_kinematics(ra.path)
         self.hand_asset = ra.asset
         self.kin: Kinematics = get_kinematics(self.assembly)
         kps = {k.mano: k for k in ra.asset.keypoints}
-        self.wrist_link = kps[WRIST].link
+        self.hand_wrist_link = kps[WRIST].link  # name in the hand URDF
+        self.wrist_link = self._n(kps[WRIST].link)  # name in the composed URDF
         self.wrist_offset = np.asarray(kps[WRIST].offset, float)
-        self.centre_link = kps.get(JOINT_INDEX["middle_mcp"], kps[WRIST]).link  # palm centre, for capsules
-        locked = dict(ra.asset.locked_joints)
+        self.centre_link = self._n(kps.get(JOINT_INDEX["middle_mcp"], kps[WRIST]).link)  # palm centre, for capsules
+        locked = {self._n(n): v for n, v in ra.asset.locked_joints}
         path = self._path_links(self.wrist_link)
         self.path_links = path
         on_path = [self.kin._joints[l].name for l in path[1:]]  # joints whose child is on the path
@@ -94,7 +105,7 @@ class ArmModel:
         self.moving = self._moving_points()
         # support-plane points: moving arm links only (the hand sits where the human hand was,
         # which may touch the table; its contact is checked by retargeting QC)
-        hand_links = set(self.hand_kin.link_names)
+        hand_links = {self._n(l) for l in self.hand_kin.link_names}
         self.arm_points = self.moving & np.array([l not in hand_links for l in path] + [False])
 
         p_t, R_t, q_prev = ca.SX.sym("p_t", 3), ca.SX.sym("R_t", 3, 3), ca.SX.sym("q_prev", self.n)
@@ -108,7 +119,15 @@ class ArmModel:
             "mu_strategy": "adaptive",
         }}
         self.solver = ca.nlpsol("arm_ik", "ipopt", {"x": qa, "p": ca.vertcat(p_t, ca.vec(R_t), q_prev, w_s), "f": cost}, opts)
-        self.reach = self._nominal_reach()
+        self.reach = float(src.reach) if src.reach else self._nominal_reach()
+        # beyond L_r plus the flange->wrist length no orientation reaches the target
+        last = self.kin._by_name[self.arm_joint_names[-1]].child
+        wrist = self.wrist_pose((self.lo_s + self.hi_s) / 2)
+        flange = self.kin.fk(self.full_q((self.lo_s + self.hi_s) / 2), last)[:3, 3]
+        self.max_reach = self.reach + float(np.linalg.norm(wrist[:3, 3] - flange))
+
+    def _n(self, name: str) -> str:
+        return self.name_map.get(name, name)
 
     # -- structure --------------------------------------------------------------------
     def _path_links(self, link: str) -> list[str]:
@@ -179,7 +198,7 @@ class ArmModel:
 
     def hand_root_from_wrist(self, hand_q: np.ndarray) -> np.ndarray:
         """hand-URDF root -> wrist link (with the wrist keypoint offset), at hand joints ``hand_q``."""
-        T = self.hand_kin.fk(hand_q, self.wrist_link).copy()
+        T = self.hand_kin.fk(hand_q, self.hand_wrist_link).copy()
         T[:3, 3] = T[:3, :3] @ self.wrist_offset + T[:3, 3]
         return T
 
@@ -192,46 +211,40 @@ class ArmModel:
         names = self.kin.joint_names
         out = np.tile(self.q_fixed, (len(arm_q), 1))
         out[:, self.arm_idx] = arm_q
+        arm = set(self.arm_idx.tolist())
         for j, n in enumerate(hand_joint_names):
-            if n in names and names.index(n) not in set(self.arm_idx.tolist()):
+            n = self._n(n)
+            if n in names and names.index(n) not in arm:
                 out[:, names.index(n)] = hand_qpos[:, j]
         return out
 
 
-def resolve_assembly(embodiment_id: str) -> tuple[Path, str]:
-    """(assembly URDF path, hand embodiment id) of a hand-arm embodiment id."""
-    try:  # the roster's own hand-arm entry, when it has one
-        emb = get_embodiment(embodiment_id)
-        if emb.arm is not None:
-            ra = resolve_asset(emb, emb.arm)
-            hand_id = next((e.id for e in _hand_embodiments() if e.hand == emb.hand), None)
-            if hand_id is not None:
-                return ra.path, hand_id
-    except EmbodimentError:
-        pass
+def arm_source(embodiment_id: str) -> ArmSource:
+    """The roster's composition (``handedit.embodiments.compose``) for a hand-arm embodiment;
+    for the legacy dex-urdf assembly ids in ``ASSEMBLIES`` the assembly URDF itself."""
     if embodiment_id not in ASSEMBLIES:
-        raise EmbodimentError(
-            f"no hand-arm assembly known for embodiment {embodiment_id!r}; known: {', '.join(sorted(ASSEMBLIES))}")
+        emb = get_embodiment(embodiment_id)  # raises for unknown ids, naming the known ones
+        if emb.arm is None:
+            raise EmbodimentError(f"embodiment {embodiment_id!r} is hand-only: it has no arm for a virtual base")
+        from handedit.embodiments.compose import compose_embodiment
+
+        c = compose_embodiment(embodiment_id)
+        return ArmSource(embodiment_id, c.urdf_path, embodiment_id, dict(c.link_map), c.nominal_reach_m)
     rel, hand_id = ASSEMBLIES[embodiment_id]
     for d in asset_dirs():
         if (d / rel).is_file():
-            return (d / rel).resolve(), hand_id
+            return ArmSource(embodiment_id, (d / rel).resolve(), hand_id, {}, None)
     raise AssetsMissing(f"hand-arm embodiment {embodiment_id!r} needs '{rel}' under a dex-urdf directory "
                         f"listed in $HANDEDIT_ASSET_DIRS (searched {[str(d) for d in asset_dirs()]}).")
 
 
-def _hand_embodiments():
-    from handedit.embodiments.roster import list_embodiments
-
-    return [e for e in list_embodiments() if e.track == "hand"]
-
-
 @functools.lru_cache(maxsize=16)
-def _build(embodiment_id: str, path: str, hand_id: str) -> ArmModel:
-    return ArmModel(embodiment_id, Path(path), hand_id)
+def _build(src_key: tuple) -> ArmModel:
+    emb, path, hand_id, names, reach = src_key
+    return ArmModel(ArmSource(emb, Path(path), hand_id, dict(names), reach))
 
 
 def arm_model(embodiment_id: str) -> ArmModel:
     """Per-process cached ``ArmModel`` of a hand-arm embodiment."""
-    path, hand_id = resolve_assembly(embodiment_id)
-    return _build(embodiment_id, str(path), hand_id)
+    s = arm_source(embodiment_id)
+    return _build((s.embodiment_id, str(s.urdf_path), s.hand_id, tuple(sorted(s.name_map.items())), s.reach))

@@ -81,6 +81,9 @@ class CandidateScore:
         d = asdict(self)
         d["camera_from_base"] = np.asarray(self.camera_from_base).round(6).tolist()
         d["reason_name"] = Reason(self.reason).name
+        for k, v in d.items():  # JSON has no inf/nan
+            if isinstance(v, float) and not np.isfinite(v):
+                d[k] = None
         return d
 
 
@@ -100,6 +103,7 @@ class VirtualBaseResult:
     status: np.ndarray  # (T,) per-frame status of the chosen candidate
     trajectories: dict[int, np.ndarray] = field(default_factory=dict)  # top-k candidate -> (T,dof)
     arm_tracks: np.ndarray | None = None  # (27,T,n_arm) every candidate's IK solution
+    frame_status: np.ndarray | None = None  # (27,T) every candidate's per-frame status
 
     @property
     def top(self) -> list[int]:
@@ -253,7 +257,8 @@ def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, 
             seeds = ([] if hint is None else [hint]) + [(arm.lo_s + arm.hi_s) / 2, np.zeros(arm.n)]
             seeds += [rng.uniform(arm.lo_s, arm.hi_s) for _ in range(max(cfg.n_seeds - len(seeds), 0))]
             sols = []
-            for s0 in seeds:  # first feasible seed wins, else the closest
+            hopeless = np.linalg.norm(targets[i][:3, 3] - shoulder_cam) > arm.max_reach
+            for s0 in seeds[: 1 if hopeless else len(seeds)]:  # first feasible seed wins, else the closest
                 sols.append(arm.solve(target, s0))
                 if sols[-1].pos_err_mm <= cfg.pos_tol_mm and sols[-1].rot_err_deg <= cfg.rot_tol_deg:
                     break
@@ -270,7 +275,7 @@ def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, 
         chains[i] = camera_from_base[:3, :3] @ ch + camera_from_base[:3, 3:4]
         q = sol.x
         if not sol.ok or sol.pos_err_mm > cfg.pos_tol_mm or sol.rot_err_deg > cfg.rot_tol_deg:
-            far = np.linalg.norm(targets[i][:3, 3] - shoulder_cam) > arm.reach
+            far = np.linalg.norm(targets[i][:3, 3] - shoulder_cam) > arm.max_reach
             status[i] = Reason.OUT_OF_REACH if far else Reason.IK_INFEASIBLE
         elif np.any(q < arm.lower - cfg.joint_limit_tol) or np.any(q > arm.upper + cfg.joint_limit_tol):
             status[i] = Reason.JOINT_LIMIT
@@ -357,6 +362,7 @@ def search_virtual_base(
         scores[i].rank = r
     trajectories = {i: np.stack([arm.full_q(q) for q in tracks[i].arm_q]) for i in ranking[: cfg.top_k]}
     arm_tracks = np.stack([t.arm_q for t in tracks])
+    frame_status = np.stack([t.status for t in tracks])
     if not ranking:
         causes = np.bincount([c.reason for c in scores])
         cause = Reason(int(causes.argmax()))
@@ -366,13 +372,13 @@ def search_virtual_base(
         st[st == Reason.OK] = Reason.NO_VALID_BASE
         return VirtualBaseResult(embodiment_id, arm.reach, scores, [], None, "none", int(Reason.NO_VALID_BASE),
                                  f"no valid base among {len(scores)} candidates (most common cause: {cause.name.lower().replace('_', ' ')})",
-                                 None, None, None, st, trajectories, arm_tracks)
+                                 None, None, None, st, trajectories, arm_tracks, frame_status)
     if cfg.review == "auto_top1":
         chosen, by = ranking[0], "auto:top1"
     else:
         chosen, by = ranking[0], "pending:manual"  # provisional until `handedit review` decides
     return _with_choice(VirtualBaseResult(embodiment_id, arm.reach, scores, ranking, None, by, int(Reason.OK), "",
-                                          None, None, None, np.zeros(n, STATUS_DTYPE), trajectories, arm_tracks),
+                                          None, None, None, np.zeros(n, STATUS_DTYPE), trajectories, arm_tracks, frame_status),
                         chosen, tracks[chosen], arm)
 
 

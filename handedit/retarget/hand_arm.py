@@ -1,0 +1,140 @@
+"""Hand-arm retargeting of a whole sequence: hand retargeting, virtual base, arm IK.
+
+1. the hand (fingers + 6-DoF wrist) is retargeted as for the hand-only track;
+2. its wrist link poses are the arm's IK targets (the fixed per-embodiment human-wrist ->
+   robot-wrist SE(3) of ``handedit.retarget.arm``);
+3. the virtual base is searched once for the sequence (``virtual_base``) and the chosen
+   candidate's IK trajectory becomes the arm joints; finger joints come from step 1.
+
+Reference frame: when the source gives camera poses in a world whose z=0 plane is the
+support surface (the synthetic source's table), the base is fixed in that world and the
+support-plane check runs; with identity (unknown) camera poses the base is fixed in the
+camera frame, "up" is image up and the support-plane check is recorded as not possible.
+
+Outputs follow the composed URDF: qpos columns in its joint order, ``root_pose`` is
+camera_from_base per frame. Results are cached per process by input digest, so the chunk
+tasks of one sequence that land on the same worker search once.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from handedit.reasons import STATUS_DTYPE, Reason
+from handedit.retarget.api import retarget
+from handedit.retarget.arm import arm_model
+from handedit.retarget.config import RetargetConfig
+from handedit.retarget.virtual_base import VirtualBaseConfig, VirtualBaseResult, search_virtual_base
+
+
+@dataclass
+class HandArmResult:
+    qpos: np.ndarray  # (T,dof) composed joint order
+    root_pose: np.ndarray  # (T,4,4) camera_from_base
+    fingertip_error_mm: np.ndarray
+    wrist_error_mm: np.ndarray
+    status: np.ndarray  # (T,) int16
+    details: dict[int, str]
+    virtual_base: VirtualBaseResult
+    joint_names: list[str]
+    notes: list[str] = field(default_factory=list)
+
+    def summary(self) -> dict:
+        """JSON-safe sequence-level record: all 27 scores, ranking, choice, policy."""
+        vb = self.virtual_base
+        return {"embodiment": vb.embodiment_id, "reach_m": vb.reach_m, "chosen": vb.chosen, "selected_by": vb.selected_by,
+                "ranking": vb.ranking, "reason": int(vb.reason), "detail": vb.detail, "notes": self.notes,
+                "camera_or_world_from_base": None if vb.camera_from_base is None else np.round(vb.camera_from_base, 6).tolist(),
+                "candidates": vb.scores_json()}
+
+
+def _known_world(world_from_camera: np.ndarray | None) -> bool:
+    return world_from_camera is not None and not np.allclose(world_from_camera, np.eye(4))
+
+
+def retarget_hand_arm(keypoints: np.ndarray, keypoints_valid: np.ndarray, embodiment_id: str, cfg: RetargetConfig,
+                      vb_cfg: VirtualBaseConfig | None = None, world_from_camera: np.ndarray | None = None,
+                      choice: int | None = None) -> HandArmResult:
+    """Whole-sequence hand-arm retargeting (see module doc). ``choice``: an operator's
+    candidate index (``handedit review``), -1 to drop the sequence, None for the policy."""
+    kp = np.ascontiguousarray(keypoints, dtype=np.float32)
+    va = np.ascontiguousarray(keypoints_valid, dtype=bool)
+    wfc = None if world_from_camera is None else np.ascontiguousarray(world_from_camera, dtype=np.float64)
+    h = hashlib.sha256(kp.tobytes() + va.tobytes() + (b"" if wfc is None else wfc.tobytes())).hexdigest()
+    key = (h, embodiment_id, cfg, vb_cfg or VirtualBaseConfig(), choice)
+    if key not in _CACHE:
+        while len(_CACHE) >= 8:
+            _CACHE.pop(next(iter(_CACHE)))
+        _CACHE[key] = _solve(embodiment_id, cfg, key[3], choice, kp, va, wfc)
+    return _CACHE[key]
+
+
+_CACHE: dict[tuple, HandArmResult] = {}  # per process: chunk tasks of one sequence search once
+
+
+def _solve(embodiment_id: str, cfg: RetargetConfig, vb_cfg: VirtualBaseConfig, choice,
+           kp, va, wfc) -> HandArmResult:
+    arm = arm_model(embodiment_id)
+    n = len(kp)
+    hand = retarget(kp, va, arm.hand_id, cfg)
+    ok = hand.status == Reason.OK
+    targets = arm.wrist_targets(hand.root_pose, hand.qpos.astype(float))
+    notes: list[str] = []
+    world = _known_world(wfc)
+    if world:
+        targets = np.einsum("tij,tjk->tik", wfc, targets)
+        up, plane = np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 1.0, 0.0])
+    else:
+        up, plane = np.array([0.0, -1.0, 0.0]), None
+        notes.append("support-plane check not possible: the source gives no world frame; base fixed in the camera frame")
+    notes.append("dual-arm check not applicable: one hand per sequence")
+    vb = search_virtual_base(targets, ok, embodiment_id, vb_cfg, up=up, support_plane=plane)
+    if choice is not None and vb.reason == Reason.OK:
+        vb = apply_review(vb, choice, arm)
+    status = np.asarray(hand.status, STATUS_DTYPE).copy()
+    details: dict[int, str] = {}
+    names = arm.kin.joint_names
+    if vb.chosen is None:
+        code = Reason.REVIEW_DROPPED if vb.selected_by.startswith("review:drop") else Reason.NO_VALID_BASE
+        status[ok] = code
+        for i in np.flatnonzero(ok):
+            details[int(i)] = vb.detail
+        qpos = np.tile(arm.q_fixed, (n, 1))
+        base = np.eye(4)
+    else:
+        arm_q = vb.arm_tracks[vb.chosen]
+        qpos = arm.assembly_qpos(arm_q, hand.qpos.astype(float), hand.joint_names)
+        base = vb.candidates[vb.chosen].camera_from_base
+        st = vb.frame_status[vb.chosen]
+        bad = ok & (st != Reason.OK)
+        status[bad] = st[bad]
+        for i in np.flatnonzero(bad):
+            details[int(i)] = f"{Reason(int(st[i])).name.lower().replace('_', ' ')} with base {vb.chosen}"
+    if world:
+        root = np.einsum("tij,jk->tik", np.linalg.inv(wfc), base)
+    else:
+        root = np.tile(base, (n, 1, 1))
+    lo, hi = arm.kin.lower, arm.kin.upper
+    qpos = np.clip(qpos, np.where(np.isfinite(lo), lo, -np.inf), np.where(np.isfinite(hi), hi, np.inf))
+    return HandArmResult(qpos.astype(np.float32), root, hand.fingertip_error_mm, hand.wrist_error_mm, status, details,
+                         vb, list(names), notes)
+
+
+def apply_review(vb: VirtualBaseResult, choice: int, arm=None) -> VirtualBaseResult:
+    """An operator's sequence-level decision: a top-3 candidate index, or -1 to drop."""
+    import dataclasses
+
+    if choice == -1:
+        return dataclasses.replace(vb, chosen=None, selected_by="review:drop", reason=int(Reason.REVIEW_DROPPED),
+                                   detail="dropped at review: no plausible candidate", camera_from_base=None,
+                                   arm_q=None, qpos=None)
+    if choice not in vb.ranking[:3]:
+        raise ValueError(f"candidate {choice} is not among the top-3 valid candidates {vb.ranking[:3]}")
+    arm = arm or arm_model(vb.embodiment_id)
+    arm_q = vb.arm_tracks[choice]
+    return dataclasses.replace(vb, chosen=choice, selected_by=f"review:{choice}",
+                               camera_from_base=vb.candidates[choice].camera_from_base, arm_q=arm_q,
+                               qpos=np.stack([arm.full_q(q) for q in arm_q]), status=vb.frame_status[choice].copy())
