@@ -261,7 +261,7 @@ def testset_meta(bench: str | Path) -> dict:
 
 def write_report(bench: str | Path, editors: list[str] | None = None) -> dict[str, list[Path]]:
     """Tables (Markdown, LaTeX, CSV) and a radar PNG per track from results/*/summary.json."""
-    from handedit.benchmark.report import radar_png, track_tables
+    from handedit.benchmark.report import REFERENCE_ROWS, radar_png, track_tables
 
     out = BenchDir(Path(bench))
     results = out.root / "results"
@@ -282,7 +282,8 @@ def write_report(bench: str | Path, editors: list[str] | None = None) -> dict[st
             md_all.append(table.markdown())
             files.append(write_text(out.report / f"{scope}_{key}.tex", table.latex()))
             files.append(write_text(out.report / f"{scope}_{key}.csv", table.csv()))
-        files.append(write_image(out.report / f"{scope}_radar.png", radar_png(title, rows)))
+        editors_only = {n: r for n, r in rows.items() if n not in REFERENCE_ROWS} or rows  # like the paper's radar
+        files.append(write_image(out.report / f"{scope}_radar.png", radar_png(title, editors_only)))
         written[scope] = files
     skipped = sorted({m for s in summaries.values() for m in s.get("skipped", [])})
     notes = [f"\nSkipped metrics (missing encoder or judge): {', '.join(skipped)}"] if skipped else []

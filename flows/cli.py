@@ -22,7 +22,7 @@ from pathlib import Path
 STORE_NAME = "handedit.zarr"
 
 
-def _prefect_defaults() -> None:
+def prefect_defaults() -> None:
     """No telemetry, and quiet Prefect logs unless the user asked otherwise."""
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
@@ -69,7 +69,6 @@ def _build_config(args: argparse.Namespace):
 
 
 def cmd_curate(args: argparse.Namespace) -> int:
-    _prefect_defaults()
     from pydantic import ValidationError
 
     from flows.curate import run_curate
@@ -207,6 +206,7 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
+    prefect_defaults()
     return int(args.func(args) or 0)
 
 

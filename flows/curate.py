@@ -116,17 +116,26 @@ def _create_units(root, config: CurateConfig, clip: ClipPlan, embs: list[Embodim
 
 
 def stage_version_params(config: CurateConfig, stage: str) -> tuple[int, dict]:
-    """A stage's code version (its config class's VERSION) and parameters; a model file
-    counts by content, so replacing the weights at the same path re-runs the stage."""
+    """A stage's code version (its config class's VERSION) and parameters."""
     cfg = config.stage_config(stage)
-    params = cfg.model_dump(mode="json")
-    if params.get("model_path"):
-        params["model_sha256"] = file_digest(Path(params["model_path"]))
-    return int(getattr(type(cfg), "VERSION", 1)), params
+    return int(getattr(type(cfg), "VERSION", 1)), cfg.model_dump(mode="json")
+
+
+def add_model_inputs(config: CurateConfig, nodes: list[Node]) -> None:
+    """A stage's model file is one of its inputs, by content: new weights at the same
+    path change the provenance key and re-run that stage."""
+    digests: dict[str, str] = {}
+    for stage in {n.unit.stage for n in nodes}:
+        path = getattr(config.stage_config(stage), "model_path", None)
+        if path:
+            digests[stage] = file_digest(Path(path))
+    for node in nodes:
+        if node.unit.stage in digests:
+            node.fixed_inputs["model"] = digests[node.unit.stage]
 
 
 def file_digest(path: Path) -> str:
-    """sha256 of a file, cached by (path, size, mtime): keys are computed per chunk node."""
+    """sha256 of a file, cached by (path, size, mtime)."""
     try:
         st = path.stat()
     except OSError:
@@ -179,6 +188,7 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
     scopes = {e.id: e.scope for e in embs}
     window = int(getattr(config.restore_background, "window", 0))
     nodes = [n for c in clips for n in build_nodes(c, scopes, config.frames_per_chunk, window)]
+    add_model_inputs(config, nodes)
     units = sorted({n.unit for n in nodes})
     for unit in units:
         version_, params = stage_version_params(config, unit.stage)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -16,6 +17,7 @@ from prefect import task
 from prefect.cache_policies import NO_CACHE
 
 from handedit.benchmark.manifest import ManifestItem
+from handedit.benchmark.testset import instruction_for_target
 from handedit.metrics.embodied import EmbodiedConfig
 from handedit.metrics.encoders import Encoders, load_encoders
 from handedit.metrics.suite import ItemImages, score_item
@@ -52,24 +54,35 @@ def load_item(it: ManifestItem) -> ItemImages:
 def body(job: EvalJob) -> dict:
     enc = _encoders(job.model_dir)
     judge = VlmJudge(job.judge) if job.judge else None
-    rows, feats = [], {}
-    for rec in job.items:
-        it = ManifestItem.from_record(dict(rec))
-        row = {"id": it.id, "track": it.replacement_scope, "embodiment": it.embodiment or it.target_name, "error": ""}
-        t0 = time.monotonic()
-        try:
-            images = load_item(it)
-            metrics, f = score_item(images, enc, job.embodied)
-            row.update(metrics)
-            if f:
-                feats[it.id] = f
-            if judge is not None:
-                j = judge.judge(images.src, images.pred, images.refs[0] if images.refs else None, it.instruction)
-                row.update(vlm_sc=j.sc, vlm_pq=j.pq, vlm=j.vlm, vlm_calls=j.calls, vlm_error="; ".join(j.errors))
-        except Exception as exc:  # per-item error row; the chunk continues
-            row["error"] = f"{type(exc).__name__}: {exc}"
-        row["seconds"] = time.monotonic() - t0
-        rows.append({k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()})
+    rows, feats, pending = [], {}, []
+    # the judge is network-bound: its calls overlap in a few threads while metrics run
+    pool = ThreadPoolExecutor(max_workers=job.judge.concurrency) if judge is not None else None
+    try:
+        for rec in job.items:
+            it = ManifestItem.from_record(dict(rec))
+            row = {"id": it.id, "track": it.replacement_scope, "embodiment": it.embodiment or it.target_name, "error": ""}
+            t0 = time.monotonic()
+            try:
+                images = load_item(it)
+                metrics, f = score_item(images, enc, job.embodied)
+                row.update(metrics)
+                if f:
+                    feats[it.id] = f
+                if pool is not None:
+                    ref = images.refs[0] if images.refs else None
+                    text = it.instruction or instruction_for_target(it.replacement_scope, it.target_name)
+                    pending.append((row, pool.submit(judge.judge, images.src, images.pred, ref, text)))
+            except Exception as exc:  # per-item error row; the chunk continues
+                row["error"] = f"{type(exc).__name__}: {exc}"
+            row["seconds"] = time.monotonic() - t0
+            rows.append(row)
+        for row, fut in pending:
+            j = fut.result()
+            row.update(vlm_sc=j.sc, vlm_pq=j.pq, vlm=j.vlm, vlm_calls=j.calls, vlm_error="; ".join(j.errors))
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True)
+    rows = [{k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in r.items()} for r in rows]
     return {"chunk": job.chunk, "rows": rows, "features": feats}
 
 

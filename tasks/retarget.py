@@ -7,7 +7,7 @@ from prefect import task
 
 from handedit.reasons import combine, gate
 from handedit.retarget import RetargetConfig, retarget as retarget_keypoints
-from storage import Unit, read_chunk
+from storage import Unit, open_store, read_chunk
 from tasks._options import stage_options
 from tasks.common import ChunkJob, StageOutput, execute
 
@@ -33,8 +33,10 @@ def _hand_arm_body(root: zarr.Group, job: ChunkJob) -> StageOutput:
 
     lo, hi = job.context["clip_frames"]
     src = read_chunk(root, Unit("ingest", job.unit.clip), ["keypoints", "keypoints_valid", "world_from_camera", "status"], lo, hi)
+    # an operator's choice from `handedit review` (read fresh: the cached root may predate it)
+    review = (open_store(job.store).attrs.get("reviews") or {}).get(f"{job.unit.clip}/{job.unit.embodiment}")
     res = retarget_hand_arm(src["keypoints"], src["keypoints_valid"], job.unit.embodiment, RetargetConfig(**job.params),
-                            world_from_camera=src["world_from_camera"])
+                            world_from_camera=src["world_from_camera"], choice=None if review is None else review["choice"])
     a, b = job.start - lo, job.stop - lo
     arrays = {"qpos": res.qpos[a:b], "root_pose": res.root_pose[a:b],
               "fingertip_error_mm": res.fingertip_error_mm[a:b], "wrist_error_mm": res.wrist_error_mm[a:b]}

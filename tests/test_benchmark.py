@@ -226,3 +226,41 @@ def test_http_editor_cost_resume_and_failures(bench):
     recs = [r for _, r, _ in iter_jsonl(BenchDir(d).records("broken-cmd"))]
     assert all(r["status"] == "failed" and r["attempts"] == 1 and "exited 3" in r["error"] and "model crashed" in r["error"] for r in recs)
     assert not any(BenchDir(d).predictions("broken-cmd").glob("*.png"))
+
+
+def test_manifest_roundtrip_and_line_errors(tmp_path):
+    from handedit.benchmark.manifest import ManifestItem
+    from handedit.benchmark.testset import instruction_for_target
+    from storage.benchmark import write_jsonl
+
+    base = {k: "" for k in TOOLKIT_FIELDS}
+    good = {**base, "id": "x1", "replacement_scope": "hand", "target_name": "Allegro", "src_path": "imgs/a.png",
+            "gt_path": str(tmp_path / "abs.png"), "urdf_ref_paths": ["r0.png"], "urdf_mask_paths": ["m0.png"]}
+    rows = [good, {**good, "id": "x2", "replacement_scope": "arm"}, {k: v for k, v in good.items() if k != "gt_path"},
+            {**good, "id": "x3", "urdf_mask_paths": []}, {**good}]
+    write_jsonl(tmp_path / "m.jsonl", rows)
+    items, errors = load_manifest(tmp_path / "m.jsonl")
+    assert [i.id for i in items] == ["x1"]
+    assert items[0].src_path == str(tmp_path / "imgs/a.png") and items[0].gt_path == str(tmp_path / "abs.png")
+    msgs = [e["error"] for e in errors]
+    assert "m.jsonl:2: replacement_scope must be one of" in msgs[0] and "missing field(s) gt_path" in msgs[1]
+    assert "differ in length" in msgs[2] and "duplicate id 'x1'" in msgs[3]
+    back = ManifestItem.from_record(items[0].to_record(tmp_path), base=tmp_path)
+    assert back == items[0] and items[0].to_record(tmp_path)["src_path"] == "imgs/a.png"
+    # a toolkit item without handedit's extras still gets the paper's instruction
+    assert instruction_for_target("hand", "Allegro").startswith("Replace the human hand region with the robot shown")
+
+
+def test_report_ranks_and_reference_row():
+    from handedit.benchmark.report import radar_scores, track_tables
+
+    rows = {"A": {"psnr_full": 20.0, "lpips_full": 0.30, "vlm": 0.5}, "B": {"psnr_full": 18.0, "lpips_full": 0.20, "vlm": 0.7},
+            "C": {"psnr_full": 12.0, "lpips_full": 0.60, "vlm": 0.1}, "Pseudo-GT": {"psnr_full": 100.0, "lpips_full": 0.0, "vlm": 0.9}}
+    md = track_tables("Hand-only", rows)["generic"].markdown()
+    line = {r.split("|")[1].strip(): r for r in md.splitlines() if r.startswith("| ") and "Model" not in r}
+    assert "**20.00**" in line["A"] and "<u>0.300</u>" in line["A"]  # lower LPIPS is better: B best, A second
+    assert "<u>18.00</u>" in line["B"] and "**0.200**" in line["B"]
+    assert "**" not in line["*Pseudo-GT* (reference)"] and md.index("| C |") < md.index("Pseudo-GT")
+    labels, scores = radar_scores(rows)
+    assert labels == ["PSNR", "LPIPS*", "VLM"]
+    assert scores["Pseudo-GT"] == pytest.approx([1, 1, 1]) and scores["C"] == pytest.approx([0.2, 0.2, 0.2])  # LPIPS inverted

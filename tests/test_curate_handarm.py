@@ -46,7 +46,8 @@ def run(tmp_path_factory, prefect_api, dask_cluster, robots_dir):
         specs = make_clip_specs(1, seed=3, n_frames=T, width=W, height=H)
         config = CurateConfig(out=out, clips=specs, embodiments=[EMB], frames_per_chunk=F,
                               cluster=ClusterConfig(address=dask_cluster.scheduler_address))
-        yield config, run_curate(config), specs[0].clip_id
+        summary = run_curate(config)
+        yield config, summary, specs[0].clip_id
     finally:
         _set_env(before)
         with Client(dask_cluster) as client:
@@ -86,3 +87,31 @@ def test_hand_arm_track(run):
     ledger = read_ledger(root)
     rows = ledger[(ledger["stage"] == "retarget") & (ledger["clip"] == clip)]
     assert sorted(rows["frame"]) == list(np.flatnonzero(status >= 100))
+
+
+def test_review_choose_rerun_and_previews(run, dask_cluster, tmp_path, capsys):
+    from flows.cli import main
+
+    config, _, clip = run
+    out_dir = str(config.out)
+    assert main(["review", out_dir]) == 0
+    listing = capsys.readouterr().out
+    assert f"{clip} / {EMB}: chosen" in listing and "auto:top1" in listing
+    vb = read_records(open_store(config.out), Unit("retarget", clip, embodiment=EMB))[0].extra["virtual_base"]
+    assert len(vb["ranking"]) >= 2, "need two valid candidates to exercise a review"
+    k = vb["ranking"][1]
+    bad = next(i for i in range(27) if i not in vb["ranking"][:3])
+    assert main(["review", out_dir, "--clip", clip, "--embodiment", EMB, "--choose", str(bad)]) == 2
+    assert "not one of the top-3" in capsys.readouterr().err
+    assert main(["review", out_dir, "--clip", clip, "--embodiment", EMB, "--previews", str(tmp_path / "pv")]) == 0
+    pngs = sorted((tmp_path / "pv").glob("*.png"))
+    assert len(pngs) == 3 * 3 * 2  # top-3 x first/middle/last frame x (egocentric, third-person)
+    assert main(["review", out_dir, "--clip", clip, "--embodiment", EMB, "--choose", str(k)]) == 0
+    again = run_curate(config)
+    assert again["stages"]["retarget"]["ran"] == T // F and again["stages"]["ingest"]["ran"] == 0
+    root = open_store(config.out)
+    rec = read_records(root, Unit("retarget", clip, embodiment=EMB))[0].extra["virtual_base"]
+    assert rec["chosen"] == k and rec["selected_by"] == f"review:{k}"
+    ret = root[Unit("retarget", clip, embodiment=EMB).path]
+    world_from_base = root[Unit("ingest", clip).path]["world_from_camera"][0] @ ret["root_pose"][0]
+    np.testing.assert_allclose(world_from_base, rec["candidates"][k]["camera_from_base"], atol=1e-5)

@@ -7,7 +7,7 @@ from itertools import permutations
 import numpy as np
 import pytest
 
-from handedit.metrics.human import fleiss_kappa, icc_2k, krippendorff_alpha_ordinal, metric_human_agreement, pairwise_choices
+from handedit.metrics.human import agreement_table, fleiss_kappa, icc_2k, krippendorff_alpha_ordinal, metric_human_agreement, pairwise_choices
 
 NAN = np.nan
 # Krippendorff (2011), "Computing Krippendorff's Alpha-Reliability": 4 coders x 12 units
@@ -77,10 +77,40 @@ def test_fleiss_kappa_and_pairwise_agreement():
     human = {"a": 4.2, "b": 3.1, "c": 2.5, "d": 3.9}
     same = {"a": 0.9, "b": 0.5, "c": 0.2, "d": 0.8}
     table = pairwise_choices(human, same)
-    assert table.shape == (6, 2) and set(map(tuple, table)) <= {(2.0, 0.0), (0.0, 2.0)}
+    assert table.shape == (12, 2) and set(map(tuple, table)) == {(2.0, 0.0), (0.0, 2.0)}
+    # metric order a > c > d > b vs human a > d > b > c: pairs (c,d) and (b,c) disagree,
+    # so P_bar = 4/6 and P_e = 1/2 (both orders) -> kappa = (4/6 - 1/2) / (1/2) = 1/3
+    assert fleiss_kappa(pairwise_choices(human, dict(same, c=0.85))) == pytest.approx(1 / 3)
     kappa, pairs = metric_human_agreement([(human, same), (human, same)])
     assert pairs == 12 and kappa == pytest.approx(1.0)
     # lower-is-better metric (e.g. LPIPS) with the ordering reversed agrees perfectly too
     assert metric_human_agreement([(human, {e: -v for e, v in same.items()})], higher_is_better=False)[0] == pytest.approx(1.0)
     reversed_ = {e: -v for e, v in same.items()}
     assert metric_human_agreement([(human, reversed_)])[0] < 0
+
+
+def test_agreement_table_from_long_ratings():
+    import pandas as pd
+
+    r = np.random.default_rng(3)
+    quality = {"A": 4.5, "B": 3.5, "C": 2.0, "D": 1.5}  # editors' true quality
+    rows = []
+    for track in ("hand", "hand_arm"):
+        for editor, q in quality.items():
+            for item in range(6):
+                truth = np.clip(q + r.normal(0, 0.5), 1, 5)
+                for rater in range(5):
+                    for axis in ("target", "scene_interaction", "realism"):
+                        rows.append((track, editor, item, rater, axis, int(np.clip(round(truth + r.normal(0, 0.4)), 1, 5))))
+    df = pd.DataFrame(rows, columns=["track", "editor", "item", "rater", "axis", "score"])
+    agree = {t: {e: {"id_fidelity": q, "interaction": q, "vlm": q} for e, q in quality.items()} for t in ("hand", "hand_arm")}
+    table = agreement_table(df, agree)
+    for axis in ("target", "scene_interaction", "realism"):
+        row = table[axis]
+        assert row["pairs"] == 12 and row["units"] == 48 and row["raters"] == 5
+        assert row["kappa"] == pytest.approx(1.0)
+        assert 0.5 < row["krippendorff_alpha"] < 1 and 0.8 < row["icc_2k"] < 1
+        sub = df[df["axis"] == axis].pivot_table(index=["track", "editor", "item"], columns="rater", values="score")
+        assert row["krippendorff_alpha"] == pytest.approx(naive_alpha_ordinal(sub.to_numpy().T.astype(float)))
+    flipped = {t: {e: {"id_fidelity": -q} for e, q in quality.items()} for t in agree}
+    assert agreement_table(df, flipped, {"target": "id_fidelity"})["target"]["kappa"] < 0

@@ -3,6 +3,7 @@
     handedit bench build --store RUN/handedit.zarr --out BENCH [--bank bank.zarr] [-n 1000]
     handedit bench run --bench BENCH --editor http --name gpt-image-2 --model gpt-image-2 [--base-url URL]
     handedit bench run --bench BENCH --editor cmd --name qwen --command 'python edit.py {src} {ref} {prompt_file} {out}'
+    handedit bench run --bench BENCH --editor cmd --name Pseudo-GT --command 'cp {gt} {out}'   (the paper's grey reference row)
     handedit bench evaluate --bench BENCH --name gpt-image-2 [--models DIR] [--judge-url URL]
     handedit bench evaluate --manifest toolkit.jsonl --out RESULTS --name X   (toolkit manifests)
     handedit bench export --bench BENCH --name X --out toolkit.jsonl
@@ -19,12 +20,6 @@ import json
 import os
 import sys
 from pathlib import Path
-
-
-def _defaults() -> None:
-    from flows.cli import _prefect_defaults
-
-    _prefect_defaults()  # telemetry off, quiet logs, a start-up budget for the temporary API
 
 
 def cmd_build(args: argparse.Namespace) -> int:
@@ -73,7 +68,6 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    _defaults()
     from flows.benchmark import export_manifest
     from flows.config import ClusterConfig
     from flows.evaluate import EvaluateConfig, run_evaluate

@@ -26,6 +26,8 @@ EMBODIED = [
     ("VLM Judge", [("SC", "vlm_sc"), ("PQ", "vlm_pq"), ("VLM", "vlm")]),
 ]
 TABLES = {"generic": ("Generic Similarity", GENERIC), "embodied_vlm": ("Embodiment-Aware Metrics and VLM Judgment", EMBODIED)}
+# Rows shown for reference, like the paper's grey Pseudo-GT row: never bold/underlined.
+REFERENCE_ROWS = ("Pseudo-GT",)
 RADAR_METRICS = ["psnr_full", "ssim_full", "lpips_full", "fid_full", "removal", "struct_fidelity",
                  "id_fidelity", "interaction", "vlm"]
 SHORT = {"psnr_full": "PSNR", "ssim_full": "SSIM", "lpips_full": "LPIPS", "fid_full": "FID", "removal": "Removal",
@@ -60,19 +62,24 @@ class TrackTable:
         return [(g, label, m) for g, cols in self.groups for label, m in cols]
 
     def styled(self) -> dict[str, dict[str, tuple[str, int]]]:
+        """editor -> metric -> (text, rank); reference rows (Pseudo-GT) are unranked and last."""
         cols = self.columns()
-        r = {m: ranks({e: row.get(m, float("nan")) for e, row in self.rows.items()}, m) for _, _, m in cols}
-        return {e: {m: (_fmt(m, row.get(m, float("nan"))), r[m].get(e, 0)) for _, _, m in cols} for e, row in self.rows.items()}
+        ranked = {e: row for e, row in self.rows.items() if e not in REFERENCE_ROWS}
+        r = {m: ranks({e: row.get(m, float("nan")) for e, row in ranked.items()}, m) for _, _, m in cols}
+        order = [*ranked, *(e for e in self.rows if e in REFERENCE_ROWS)]
+        return {e: {m: (_fmt(m, self.rows[e].get(m, float("nan"))), r[m].get(e, 0)) for _, _, m in cols} for e in order}
 
     def markdown(self) -> str:
         cols = self.columns()
         arrow = lambda m: "↑" if METRICS[m][0] else "↓"  # noqa: E731
-        head = "| Model | " + " | ".join(f"{g}{arrow(m)} {label}" for g, label, m in cols) + " |"
+        # generic columns read "PSNR Full"; the embodied/VLM labels stand alone
+        name = lambda g, label: f"{g} {label}" if g in ("PSNR", "SSIM", "LPIPS", "FID") else label  # noqa: E731
+        head = "| Model | " + " | ".join(f"{name(g, label)}{arrow(m)}" for g, label, m in cols) + " |"
         lines = [f"**{self.track} {self.title}** (best **bold**, second <u>underlined</u>)", "", head,
                  "|" + "---|" * (len(cols) + 1)]
         for e, cells in self.styled().items():
             vals = [f"**{s}**" if k == 1 else f"<u>{s}</u>" if k == 2 else s for s, k in (cells[m] for _, _, m in cols)]
-            lines.append(f"| {e} | " + " | ".join(vals) + " |")
+            lines.append(f"| {'*' + e + '* (reference)' if e in REFERENCE_ROWS else e} | " + " | ".join(vals) + " |")
         return "\n".join(lines) + "\n"
 
     def latex(self) -> str:
@@ -88,6 +95,10 @@ class TrackTable:
         body = []
         for e, cells in self.styled().items():
             vals = [rf"\textbf{{{s}}}" if k == 1 else rf"\underline{{{s}}}" if k == 2 else s for s, k in (cells[m] for _, _, m in cols)]
+            if e in REFERENCE_ROWS:  # the paper's grey reference row
+                vals = [rf"\textcolor{{gray!50}}{{{v}}}" for v in vals]
+                body.append(r"\rowcolor{gray!20} \textcolor{gray!50}{" + _tex_escape(e) + "} & " + " & ".join(vals) + r" \\")
+                continue
             body.append(_tex_escape(e) + " & " + " & ".join(vals) + r" \\")
         return "\n".join([r"\begin{table*}[t]", r"\centering",
                           rf"\caption{{\textbf{{{self.track} {self.title}.}} Best and second-best model scores are bolded and underlined, respectively.}}",

@@ -73,3 +73,15 @@ def select_frames(kept: dict[str, dict[str, np.ndarray]], n_sources: int, seed: 
             cands.append((-int(count[f]), float(rng.random()), SourceFrame(clip, int(f))))
     cands.sort(key=lambda c: (c[0], c[1]))
     return sorted((c[2] for c in cands[:n_sources]), key=lambda s: (s.clip, s.frame))
+
+
+def instruction_for_target(scope: str, target_name: str) -> str:
+    """The instruction for a toolkit item that carries only ``target_name`` (roster lookup
+    by display name or id); empty when the target is not in the roster."""
+    from handedit.embodiments import list_embodiments
+
+    key = target_name.strip().lower()
+    for e in list_embodiments():
+        if key in (e.id.lower(), e.name.lower()):
+            return instruction(scope, e.name, e.description)
+    return ""

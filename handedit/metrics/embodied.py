@@ -76,7 +76,7 @@ def delta_e_lab(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
     m = np.asarray(mask, bool)
     if not m.any():
         return float("nan")
-    d = rgb_to_lab(pred)[m].astype(np.float64) - rgb_to_lab(gt)[m]
+    d = rgb_to_lab(pred[m]) - rgb_to_lab(gt[m])  # only the masked pixels are converted
     return float(np.sqrt((d**2).sum(axis=-1)).mean())
 
 

@@ -164,17 +164,23 @@ class LpipsNet:
 
     def masked_distance(self, a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
         """LPIPS with each layer's map upsampled to the image and averaged over ``mask``."""
+        return self.full_and_masked(a, b, mask)[1]
+
+    def full_and_masked(self, a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
+        """(LPIPS, LPIPS averaged over ``mask``) from one backbone pass."""
+        maps = self.layer_maps(a, b)
+        full = float(sum(lm.mean() for lm in maps))
         m = np.asarray(mask, bool)
         if not m.any():
-            return float("nan")
+            return full, float("nan")
         if min(m.shape) < MIN_LPIPS_SIDE:
             m = _at_least(m.astype(np.uint8), MIN_LPIPS_SIDE, nearest=True).astype(bool)
         h, w = m.shape
         total = 0.0
-        for lm in self.layer_maps(a, b):
+        for lm in maps:
             up = cv2.resize(lm.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
             total += float(up[m].mean())
-        return total
+        return full, total
 
 
 def _at_least(im: np.ndarray, side: int, nearest: bool = False) -> np.ndarray:

@@ -78,10 +78,13 @@ def fleiss_kappa(counts: np.ndarray) -> float:
 
 
 def pairwise_choices(human: Mapping[str, float], metric: Mapping[str, float], higher_is_better: bool = True) -> np.ndarray:
-    """(pairs, 2) counts: column 0 = 'first editor preferred', column 1 = 'second'.
+    """(2 x pairs, 2) counts: column 0 = 'first editor preferred', column 1 = 'second'.
 
-    One row per editor pair with a strict preference from both the MOS and the metric
-    (ties and NaNs carry no choice and are left out).
+    Each editor pair with a strict preference from both the MOS and the metric (ties
+    and NaNs carry no choice and are left out) appears in both orders, (A,B) and (B,A):
+    which editor is "first" is arbitrary, and with one order only, editors listed
+    best-first would put every choice in one category and make kappa undefined.
+    Both orders leave the observed agreement unchanged and balance the categories.
     """
     editors = sorted(set(human) & set(metric))
     rows = []
@@ -90,7 +93,8 @@ def pairwise_choices(human: Mapping[str, float], metric: Mapping[str, float], hi
         m = (metric[a] - metric[b]) * (1 if higher_is_better else -1)
         if not (np.isfinite(h) and np.isfinite(m)) or h == 0 or m == 0:
             continue
-        rows.append([int(h > 0) + int(m > 0), int(h < 0) + int(m < 0)])
+        row = [int(h > 0) + int(m > 0), int(h < 0) + int(m < 0)]
+        rows += [row, row[::-1]]
     return np.asarray(rows, dtype=np.float64).reshape(-1, 2)
 
 
@@ -100,4 +104,39 @@ def metric_human_agreement(tracks: Sequence[tuple[Mapping[str, float], Mapping[s
     table = np.concatenate([pairwise_choices(h, m, higher_is_better) for h, m in tracks] or [np.zeros((0, 2))])
     if len(table) == 0:
         return float("nan"), 0
-    return fleiss_kappa(table), len(table)
+    return fleiss_kappa(table), len(table) // 2
+
+
+# Paper: ID Fidelity <-> target-robot correctness, Interaction <-> scene-and-interaction
+# preservation, the VLM judge score <-> realism with physical plausibility.
+AXIS_METRIC = {"target": "id_fidelity", "scene_interaction": "interaction", "realism": "vlm"}
+
+
+def agreement_table(ratings, metrics: Mapping[str, Mapping[str, Mapping[str, float]]],
+                    axis_metric: Mapping[str, str] = AXIS_METRIC) -> dict[str, dict[str, float]]:
+    """The paper's human-agreement table from long-format ratings.
+
+    ``ratings``: a pandas DataFrame with columns track, editor, item, rater, axis, score
+    (one row per scalar rating). ``metrics[track][editor][metric]``: the automatic
+    scores (e.g. the evaluate flow's per-track means). Returns, per axis: Krippendorff's
+    alpha (units = track x editor x item), ICC(2,k) over units rated by all k raters,
+    and the metric-human Fleiss' kappa over editor pairs pooled across tracks.
+    """
+    out: dict[str, dict[str, float]] = {}
+    for axis, metric in axis_metric.items():
+        r = ratings[ratings["axis"] == axis]
+        if r.empty:
+            continue
+        wide = r.pivot_table(index=["track", "editor", "item"], columns="rater", values="score", aggfunc="mean")
+        complete = wide.dropna()
+        mos = r.groupby(["track", "editor"])["score"].mean()
+        pairs = [({e: float(mos[(t, e)]) for e in mos[t].index},
+                  {e: float(v.get(metric, np.nan)) for e, v in metrics.get(t, {}).items()})
+                 for t in mos.index.get_level_values(0).unique()]
+        kappa, n_pairs = metric_human_agreement(pairs)
+        out[axis] = {
+            "krippendorff_alpha": krippendorff_alpha_ordinal(wide.to_numpy().T),
+            "icc_2k": icc_2k(complete.to_numpy()) if len(complete) >= 2 else float("nan"),
+            "kappa": kappa, "pairs": n_pairs, "units": len(wide), "raters": wide.shape[1],
+        }
+    return out

@@ -13,8 +13,8 @@ match ``skimage.metrics.structural_similarity`` exactly on full images.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
-from scipy.ndimage import uniform_filter
 
 PSNR_CAP_DB = 100.0  # identical images: finite, so means over items stay finite
 K1, K2, WIN = 0.01, 0.03, 7
@@ -55,7 +55,7 @@ def ssim_map(a: np.ndarray, b: np.ndarray, data_range: float = 255.0, win: int =
     out = np.zeros(x.shape[:2])
     for c in range(x.shape[2]):
         xc, yc = x[..., c], y[..., c]
-        f = lambda v: uniform_filter(v, size=win)  # noqa: E731
+        f = lambda v: cv2.blur(v, (win, win), borderType=cv2.BORDER_REFLECT)  # noqa: E731  (= scipy's uniform_filter, ~5x faster)
         ux, uy = f(xc), f(yc)
         vx = cov_norm * (f(xc * xc) - ux * ux)
         vy = cov_norm * (f(yc * yc) - uy * uy)
@@ -66,7 +66,11 @@ def ssim_map(a: np.ndarray, b: np.ndarray, data_range: float = 255.0, win: int =
 
 def ssim(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None, data_range: float = 255.0) -> float:
     """Mean SSIM; excludes the half-window border like scikit-image; ``mask`` restricts the mean."""
-    s = ssim_map(a, b, data_range)
+    return ssim_mean(ssim_map(a, b, data_range), mask)
+
+
+def ssim_mean(s: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Mean of an SSIM map (one map serves both the full image and the background)."""
     pad = (min(WIN, *(n if n % 2 else n - 1 for n in s.shape)) - 1) // 2
     valid = np.zeros(s.shape, bool)
     valid[pad : s.shape[0] - pad, pad : s.shape[1] - pad] = True

@@ -72,15 +72,15 @@ def score_item(items: ItemImages, enc: Encoders, cfg: EmbodiedConfig = EmbodiedC
     out: dict[str, float] = {}
     out["psnr_full"] = similarity.psnr(pred, gt)
     out["psnr_bg"] = similarity.psnr(pred, gt, bg)
-    out["ssim_full"] = similarity.ssim(pred, gt)
-    out["ssim_bg"] = similarity.ssim(pred, gt, bg)
+    smap = similarity.ssim_map(pred, gt)  # one map: full and background are two means of it
+    out["ssim_full"] = similarity.ssim_mean(smap)
+    out["ssim_bg"] = similarity.ssim_mean(smap, bg)
     pred_roi = crop(pred, box) if box else None
     gt_roi = crop(gt, box) if box else None
     out["psnr_roi"] = similarity.psnr(pred_roi, gt_roi) if box else nan
     out["ssim_roi"] = similarity.ssim(pred_roi, gt_roi) if box and min(pred_roi.shape[:2]) >= 3 else nan
     if enc.lpips is not None:
-        out["lpips_full"] = enc.lpips.distance(pred, gt)
-        out["lpips_bg"] = enc.lpips.masked_distance(pred, gt, bg)
+        out["lpips_full"], out["lpips_bg"] = enc.lpips.full_and_masked(pred, gt, bg)
         out["lpips_roi"] = enc.lpips.distance(pred_roi, gt_roi) if box else nan
     else:
         out["lpips_full"] = out["lpips_bg"] = out["lpips_roi"] = nan

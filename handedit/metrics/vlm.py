@@ -17,7 +17,9 @@ import base64
 import hashlib
 import json
 import math
+import os
 import re
+import threading
 import time
 import urllib.error
 import urllib.request
@@ -142,6 +144,7 @@ class JudgeConfig(BaseModel):
     backoff_s: float = Field(1.0, ge=0)
     timeout_s: float = Field(120.0, gt=0)
     temperature: float = 0.0
+    concurrency: int = Field(4, ge=1, description="judge calls in flight per evaluate task")
 
     @classmethod
     def from_env(cls, **overrides) -> "JudgeConfig | None":
@@ -216,8 +219,10 @@ class VlmJudge:
             except (MalformedAnswer, urllib.error.URLError, TimeoutError, OSError, KeyError, ValueError) as exc:
                 last = f"{type(exc).__name__}: {exc}"
                 continue
-            if cached:
-                cached.write_text(json.dumps({"content": text, "model": self.cfg.model}))
+            if cached:  # temp + rename: concurrent judges never read a half-written answer
+                tmp = cached.with_suffix(f".{threading.get_ident()}.tmp")
+                tmp.write_text(json.dumps({"content": text, "model": self.cfg.model}))
+                os.replace(tmp, cached)
             return answer, attempt + 1
         raise RuntimeError(f"no valid answer after {self.cfg.max_tries} tries; last: {last}")
 

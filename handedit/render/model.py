@@ -185,14 +185,24 @@ def _silhouettes(vertices: np.ndarray, faces: np.ndarray, lo: np.ndarray, scale:
     return out
 
 
+class _SilhouetteCheck:
+    """The three axis-aligned silhouettes of a reference mesh, on a grid of ``SILHOUETTE_PX``
+    cells across its largest extent, to compare candidate simplifications with."""
+
+    def __init__(self, reference: trimesh.Trimesh) -> None:
+        self.lo = np.asarray(reference.bounds[0], float)
+        self.scale = (SILHOUETTE_PX - 1) / max(float(np.max(reference.extents)), 1e-12)
+        self.ref = _silhouettes(np.asarray(reference.vertices), np.asarray(reference.faces), self.lo, self.scale)
+
+    def iou(self, other: trimesh.Trimesh) -> float:
+        """Smallest of the three silhouette IoUs of ``other`` against the reference."""
+        sb = _silhouettes(np.asarray(other.vertices), np.asarray(other.faces), self.lo, self.scale)
+        return min(float((x & y).sum() / max((x | y).sum(), 1)) for x, y in zip(self.ref, sb))
+
+
 def silhouette_iou(a: trimesh.Trimesh, b: trimesh.Trimesh) -> float:
-    """Smallest IoU of the three axis-aligned silhouettes of ``b`` against those of ``a``, on a
-    grid of ``SILHOUETTE_PX`` cells across ``a``'s largest extent."""
-    lo = np.asarray(a.bounds[0], float)
-    scale = (SILHOUETTE_PX - 1) / max(float(np.max(a.extents)), 1e-12)
-    sa = _silhouettes(np.asarray(a.vertices), np.asarray(a.faces), lo, scale)
-    sb = _silhouettes(np.asarray(b.vertices), np.asarray(b.faces), lo, scale)
-    return min(float((x & y).sum() / max((x | y).sum(), 1)) for x, y in zip(sa, sb))
+    """Smallest IoU of the three axis-aligned silhouettes of ``b`` against those of ``a``."""
+    return _SilhouetteCheck(a).iou(b)
 
 
 def decimate_mesh(
@@ -216,10 +226,12 @@ def decimate_mesh(
         return mesh
     welded = _welded(mesh)
     target = max(min_faces, int(round(n * fraction)))
+    check = None
     while target < 0.75 * n:
         verts, faces = fs.simplify(welded.vertices, welded.faces, target_count=target, agg=3.0)
         simple = trimesh.Trimesh(verts, faces, process=False)
-        if len(simple.faces) and silhouette_iou(mesh, simple) >= min_iou:
+        check = check or _SilhouetteCheck(mesh)
+        if len(simple.faces) and check.iou(simple) >= min_iou:
             simple.remove_unreferenced_vertices()
             return simple
         target *= 2
@@ -248,7 +260,7 @@ def build_model(
         material = _final_material(link, _source_material(mesh), overrides)
         if decimate is not None:
             # the same mesh file is often instanced on several links (fingers): simplify it once
-            key = (len(mesh.vertices), len(mesh.faces), hash(np.asarray(mesh.vertices).tobytes()))
+            key = (hash(np.asarray(mesh.vertices).tobytes()), hash(np.asarray(mesh.faces).tobytes()))
             if key not in simplified:
                 simplified[key] = decimate_mesh(mesh, decimate)
             mesh = simplified[key]

@@ -62,7 +62,8 @@ class RobotRenderer:
     ``materials``: link-name regex (``re.fullmatch``, first match wins) -> display (sRGB) RGBA in
     [0, 1], overriding the mesh colours of matching links (the embodiment roster's convention).
     Links with no match keep their URDF/mesh colours; meshes with none render neutral grey.
-    ``decimate``: keep about this fraction of each mesh's faces (quadric decimation).
+    ``decimate``: keep about this fraction of the faces of each dense mesh (quadric decimation;
+    small meshes, and meshes whose silhouette would change, stay in full: ``model.decimate_mesh``).
     """
 
     def __init__(
@@ -75,6 +76,7 @@ class RobotRenderer:
     ) -> None:
         self.urdf_path = Path(urdf_path)
         self.width, self.height = int(width), int(height)
+        self.decimate = decimate
         self.model: RobotModel = build_model(self.urdf_path, materials=materials, decimate=decimate)
         self.urdf = self.model.urdf
         self.joint_names: list[str] = list(self.urdf.actuated_joint_names)

@@ -35,6 +35,10 @@ class RetargetConfig(BaseModel):
     warm_start: bool = True  # primal + multipliers from the previous frame of the chunk
     fingertip_reject_mm: float = Field(50.0, gt=0)
     wrist_reject_mm: float = Field(50.0, gt=0)
+    # contact QC (handedit.retarget.qc), applied where the source has an object mesh + pose
+    contact_mm: float = Field(10.0, gt=0)
+    contact_distance_mm: float = Field(20.0, gt=0)
+    penetration_mm: float = Field(10.0, gt=0)
 
     def weight(self, kind: str) -> float:
         return float(getattr(self, f"{'fingertip' if kind == 'tip' else kind}_weight"))

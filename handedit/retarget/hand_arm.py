@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from handedit.reasons import STATUS_DTYPE, Reason
-from handedit.retarget.api import retarget
+from handedit.retarget.api import RetargetResult, retarget
 from handedit.retarget.arm import arm_model
 from handedit.retarget.config import RetargetConfig
 from handedit.retarget.virtual_base import VirtualBaseConfig, VirtualBaseResult, search_virtual_base
@@ -41,6 +41,7 @@ class HandArmResult:
     virtual_base: VirtualBaseResult
     joint_names: list[str]
     notes: list[str] = field(default_factory=list)
+    hand: "RetargetResult | None" = None  # the hand-only result the arm follows (for QC)
 
     def summary(self) -> dict:
         """JSON-safe sequence-level record: all 27 scores, ranking, choice, policy."""
@@ -93,7 +94,10 @@ def _solve(embodiment_id: str, cfg: RetargetConfig, vb_cfg: VirtualBaseConfig, c
     notes.append("dual-arm check not applicable: one hand per sequence")
     vb = search_virtual_base(targets, ok, embodiment_id, vb_cfg, up=up, support_plane=plane)
     if choice is not None and vb.reason == Reason.OK:
-        vb = apply_review(vb, choice, arm)
+        try:
+            vb = apply_review(vb, choice, arm)
+        except ValueError as e:  # a stale decision (inputs changed since): keep the policy's choice
+            notes.append(f"review ignored: {e}")
     status = np.asarray(hand.status, STATUS_DTYPE).copy()
     details: dict[int, str] = {}
     names = arm.kin.joint_names
@@ -120,7 +124,7 @@ def _solve(embodiment_id: str, cfg: RetargetConfig, vb_cfg: VirtualBaseConfig, c
     lo, hi = arm.kin.lower, arm.kin.upper
     qpos = np.clip(qpos, np.where(np.isfinite(lo), lo, -np.inf), np.where(np.isfinite(hi), hi, np.inf))
     return HandArmResult(qpos.astype(np.float32), root, hand.fingertip_error_mm, hand.wrist_error_mm, status, details,
-                         vb, list(names), notes)
+                         vb, list(names), notes, hand)
 
 
 def apply_review(vb: VirtualBaseResult, choice: int, arm=None) -> VirtualBaseResult:

@@ -44,6 +44,12 @@ class RetargetQCConfig(BaseModel):
     penetration_mm: float = Field(10.0, gt=0, description="depth of a severe penetration")
     surface_points_per_link: int = Field(64, ge=8)
 
+    @classmethod
+    def from_retarget(cls, cfg: RetargetConfig) -> "RetargetQCConfig":
+        """The thresholds a curate run sets through its retarget stage config."""
+        return cls(fingertip_mm=cfg.fingertip_reject_mm, wrist_mm=cfg.wrist_reject_mm, contact_mm=cfg.contact_mm,
+                   contact_distance_mm=cfg.contact_distance_mm, penetration_mm=cfg.penetration_mm)
+
 
 @dataclass
 class RetargetQC:

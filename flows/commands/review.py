@@ -1,0 +1,146 @@
+"""``handedit review``: the operator's sequence-level choice of a virtual base (hand-arm track).
+
+    handedit review DIR                                   every hand-arm sequence: top-3, choice, policy
+    handedit review DIR --clip C --embodiment E           its 27 candidates' scores
+    handedit review DIR --clip C --embodiment E --previews OUT   egocentric + third-person PNGs of the top-3
+    handedit review DIR --clip C --embodiment E --choose K       pick top-3 candidate K
+    handedit review DIR --clip C --embodiment E --drop           no plausible candidate: drop the sequence
+
+The default policy (``auto_top1``) already picked the best-ranked candidate and says so
+in provenance (``selected_by``). A decision is stored in the store's ``reviews`` attribute
+and the sequence's retarget records are cleared, so the next ``handedit curate`` run
+re-solves that sequence with the chosen base (or rejects it, REVIEW_DROPPED) and re-runs
+only what reads it. Run it while no curate run writes to the store.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+REVIEWS_ATTR = "reviews"
+
+
+def _summaries(root, clip: str | None = None, emb: str | None = None) -> dict[tuple[str, str], dict]:
+    from storage import Unit, read_records
+
+    out = {}
+    for c in sorted((root.attrs.get("clips") or {})):
+        if clip and c != clip:
+            continue
+        for e in sorted((root.attrs.get("embodiments") or {})):
+            if emb and e != emb:
+                continue
+            recs = read_records(root, Unit("retarget", c, embodiment=e))
+            vb = next((r.extra.get("virtual_base") for r in recs.values() if r.extra.get("virtual_base")), None)
+            if vb:
+                out[(c, e)] = vb
+    return out
+
+
+def _fmt(c: dict) -> str:
+    ee = "-" if c["ee_error_mm"] is None else f"{c['ee_error_mm']:.1f}"
+    return (f"  #{c['index']:>2} lat {c['lateral']:+.2f} fwd {c['forward']:+.2f} yaw {c['yaw_deg']:+.0f}  "
+            f"{c['reason_name']:<14} crit {c['critical_success']:.2f} reach {c['reachability']:.2f} ee {ee} mm "
+            f"margin {c['joint_margin']:.2f} step {c['continuity']:.2f} rank {c['rank']}  {c['detail']}")
+
+
+def cmd_review(args: argparse.Namespace) -> int:
+    from flows.cli import store_path
+    from storage import Unit, open_store
+    from storage.provenance import PROVENANCE_ATTR
+    from storage.store import now_iso, set_attrs
+
+    path = store_path(args.dir)
+    if not path.exists():
+        print(f"error: no store at {path}; run `handedit curate --out {args.dir}` first", file=sys.stderr)
+        return 2
+    deciding = args.choose is not None or args.drop
+    if (deciding or args.previews) and not (args.clip and args.embodiment):
+        print("error: --choose/--drop/--previews need --clip and --embodiment", file=sys.stderr)
+        return 2
+    root = open_store(path, mode="r+" if deciding else "r")
+    found = _summaries(root, args.clip, args.embodiment)
+    reviews = dict(root.attrs.get(REVIEWS_ATTR) or {})
+    if not found:
+        print(f"error: no hand-arm sequence with virtual-base candidates in {path}"
+              + (f" for {args.clip}/{args.embodiment}" if args.clip else ""), file=sys.stderr)
+        return 2
+    if not deciding:
+        for (c, e), vb in found.items():
+            top = vb["ranking"][:3]
+            print(f"{c} / {e}: chosen {vb['chosen']} ({vb['selected_by']}), top-3 {top}, L_r {vb['reach_m']:.3f} m"
+                  + (f"  review: {reviews[f'{c}/{e}']}" if f"{c}/{e}" in reviews else "")
+                  + (f"  REJECTED: {vb['detail']}" if vb["chosen"] is None else ""))
+            cands = vb["candidates"] if args.clip else [vb["candidates"][i] for i in top]
+            for cand in cands:
+                print(_fmt(cand))
+            for note in vb.get("notes", []):
+                print(f"  note: {note}")
+        if args.previews:
+            return _write_previews(root, args, found)
+        return 0
+    (c, e), vb = next(iter(found.items()))
+    if args.drop:
+        choice = -1
+    else:
+        if args.choose not in vb["ranking"][:3]:
+            print(f"error: candidate {args.choose} is not one of the top-3 valid candidates {vb['ranking'][:3]} "
+                  f"of {c}/{e}", file=sys.stderr)
+            return 2
+        choice = args.choose
+    reviews[f"{c}/{e}"] = {"choice": choice, "by": "operator", "at": now_iso()}
+    set_attrs(root, "", {REVIEWS_ATTR: reviews})
+    set_attrs(root, Unit("retarget", c, embodiment=e).path, {PROVENANCE_ATTR: {}})  # re-solve on the next run
+    print(f"{c}/{e}: {'dropped' if choice == -1 else f'candidate {choice}'}; re-run `handedit curate` to apply")
+    return 0
+
+
+def _write_previews(root, args, found) -> int:
+    import numpy as np
+    from PIL import Image
+
+    from handedit.camera import Intrinsics
+    from handedit.retarget import RetargetConfig
+    from handedit.retarget.hand_arm import retarget_hand_arm
+    from handedit.retarget.preview import render_previews
+    from storage import Unit, read_records
+
+    (c, e), vb = next(iter(found.items()))
+    src = root[Unit("ingest", c).path]
+    info = (root.attrs.get("clips") or {})[c]
+    rec = next(iter(read_records(root, Unit("retarget", c, embodiment=e)).values()))
+    intr_d = dict(root[Unit("ingest", c).path].attrs.get("info", {}).get("intrinsics") or {})
+    if not intr_d:
+        print(f"error: no camera intrinsics stored for {c}", file=sys.stderr)
+        return 2
+    intr = Intrinsics(**intr_d)
+    wfc = src["world_from_camera"][:]
+    res = retarget_hand_arm(src["keypoints"][:], src["keypoints_valid"][:], e, RetargetConfig(**rec.params),
+                            world_from_camera=wfc)
+    n = info.get("n_frames", len(wfc))
+    frames = sorted({0, n // 2, n - 1})
+    out = Path(args.previews)
+    out.mkdir(parents=True, exist_ok=True)
+    frames_rgb = src["frames"]
+    for cand, views in render_previews(res, intr, frames=frames, world_from_camera=wfc).items():
+        for k, f in enumerate(frames):
+            rgba = views["ego"][k].astype(float) / 255
+            over = (frames_rgb[f] * (1 - rgba[..., 3:]) + 255 * rgba[..., :3] * rgba[..., 3:]).astype(np.uint8)
+            Image.fromarray(over).save(out / f"{c}_{e}_cand{cand}_ego_f{f:05d}.png")
+            Image.fromarray(views["third"][k]).save(out / f"{c}_{e}_cand{cand}_third_f{f:05d}.png")
+    print(f"previews of candidates {vb['ranking'][:3]} -> {out}")
+    return 0
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("review", help="choose (or drop) the virtual base of hand-arm sequences")
+    p.add_argument("dir", help="run folder (or .zarr store)")
+    p.add_argument("--clip")
+    p.add_argument("--embodiment")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--choose", type=int, help="candidate index among the top-3")
+    g.add_argument("--drop", action="store_true", help="no plausible candidate: exclude the sequence")
+    p.add_argument("--previews", help="folder for egocentric and third-person preview PNGs of the top-3")
+    p.set_defaults(func=cmd_review)

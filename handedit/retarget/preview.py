@@ -1,0 +1,52 @@
+"""Replay previews of the top virtual-base candidates, for the operator's sequence choice.
+
+Egocentric: the robot rendered in the source camera (what the pseudo-GT will show).
+Third-person: a fixed virtual camera beside the arm, looking at the midpoint between the
+base and the hand's mean position from ``side_m`` metres to the side and above, so base
+plausibility, overextension and collisions are visible (the paper's replay videos).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from handedit.camera import Intrinsics, look_at
+from handedit.retarget.hand_arm import HandArmResult
+
+
+def third_person_camera(camera_from_base: np.ndarray, hand_points: np.ndarray, up: np.ndarray, side_m: float = 1.2) -> np.ndarray:
+    """ref_from_camera of the third-person view (all in the reference frame of the base)."""
+    base = camera_from_base[:3, 3]
+    mid = (base + hand_points.mean(axis=0)) / 2
+    lateral = camera_from_base[:3, 1]
+    eye = mid + side_m * lateral + 0.5 * side_m * up / np.linalg.norm(up)
+    return look_at(eye, mid, up)
+
+
+def render_previews(res: HandArmResult, intr: Intrinsics, candidates: list[int] | None = None,
+                    frames: list[int] | None = None, world_from_camera: np.ndarray | None = None) -> dict[int, dict[str, np.ndarray]]:
+    """candidate -> {"ego": (n,H,W,4) uint8, "third": (n,H,W,4) uint8} for the top-3 by default."""
+    from handedit.render import render_embodiment
+    from handedit.retarget.arm import arm_model
+
+    vb = res.virtual_base
+    arm = arm_model(vb.embodiment_id)
+    cands = vb.ranking[:3] if candidates is None else candidates
+    n = len(res.qpos)
+    frames = list(range(n)) if frames is None else frames
+    world = world_from_camera is not None and not np.allclose(world_from_camera, np.eye(4))
+    up = np.array([0.0, 0.0, 1.0]) if world else np.array([0.0, -1.0, 0.0])
+    names = arm.kin.joint_names
+    out: dict[int, dict[str, np.ndarray]] = {}
+    for c in cands:
+        ref_from_base = vb.candidates[c].camera_from_base
+        q = np.tile(res.qpos[frames].astype(float), (1, 1))
+        q[:, arm.arm_idx] = vb.arm_tracks[c][frames]
+        cam_from_ref = np.linalg.inv(world_from_camera[frames]) if world else np.tile(np.eye(4), (len(frames), 1, 1))
+        ego = render_embodiment(vb.embodiment_id, q, cam_from_ref @ ref_from_base, intr)
+        hand = np.array([(ref_from_base @ arm.wrist_pose(vb.arm_tracks[c][i]))[:3, 3] for i in frames])
+        ref_from_tp = third_person_camera(ref_from_base, hand, up)
+        tp_from_base = np.linalg.inv(ref_from_tp) @ ref_from_base
+        third = render_embodiment(vb.embodiment_id, q, np.tile(tp_from_base, (len(frames), 1, 1)), intr)
+        out[c] = {"ego": ego.rgba, "third": third.rgba, "joint_names": np.array(names)}
+    return out
