@@ -89,7 +89,7 @@ def build_nodes(
                 comp_ctx["source"] = clip.source_json
             upstream = [ingest, segment, restore, ret, ren, comp, harm]
             nodes += [
-                Node(ret, k, s, e, *_retarget_deps(ingest, k, ranges, scope, base_ctx)),
+                Node(ret, k, s, e, *_retarget_deps(ingest, k, ranges, scope, base_ctx, clip)),
                 Node(ren, k, s, e, [Dep(ret, k, ("qpos", "root_pose", "status"))], base_ctx, camera),
                 Node(comp, k, s, e, comp_deps, comp_ctx),
                 Node(harm, k, s, e, [Dep(comp, k, ("image", "robot_mask", "status"))], base_ctx),
@@ -99,11 +99,16 @@ def build_nodes(
     return nodes
 
 
-def _retarget_deps(ingest: Unit, k: int, ranges: list[tuple[int, int]], scope: str, ctx: dict) -> tuple[list[Dep], dict]:
+def _retarget_deps(ingest: Unit, k: int, ranges: list[tuple[int, int]], scope: str, ctx: dict,
+                   clip: ClipPlan) -> tuple[list[Dep], dict]:
     """Hand-only: the chunk's own keypoints. Hand-arm: the virtual base is fixed per sequence,
     so every chunk reads the whole clip's keypoints and camera poses (each chunk runs the
-    same deterministic search; a worker caches it) and writes only its own frames."""
+    same deterministic search; a worker caches it) and writes only its own frames. With an
+    object, its pose (and the source, for its mesh) feed the contact/penetration QC."""
+    obj = ("object_pose",) if clip.has_object else ()
+    ctx = {**ctx, "source": clip.source_json} if clip.has_object else ctx
     if scope != "hand_arm":
-        return [Dep(ingest, k, ("keypoints", "keypoints_valid", "status"))], ctx
-    deps = [Dep(ingest, j, ("keypoints", "keypoints_valid", "world_from_camera", "status")) for j in range(len(ranges))]
+        return [Dep(ingest, k, ("keypoints", "keypoints_valid", "status", *obj))], ctx
+    deps = [Dep(ingest, j, ("keypoints", "keypoints_valid", "world_from_camera", "status", *(obj if j == k else ())))
+            for j in range(len(ranges))]
     return deps, {**ctx, "track": "hand_arm", "clip_frames": [0, ranges[-1][1]]}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import zarr
 from prefect import task
 
@@ -16,14 +17,31 @@ def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     if job.context.get("track") == "hand_arm":
         return _hand_arm_body(root, job)
     src = read_chunk(root, Unit("ingest", job.unit.clip), ["keypoints", "keypoints_valid", "status"], job.start, job.stop)
-    result = retarget_keypoints(src["keypoints"], src["keypoints_valid"], job.unit.embodiment, RetargetConfig(**job.params))
+    cfg = RetargetConfig(**job.params)
+    result = retarget_keypoints(src["keypoints"], src["keypoints_valid"], job.unit.embodiment, cfg)
+    qc = _qc(root, job, result, src["keypoints"], src["keypoints_valid"], cfg, job.start, job.stop)
     arrays = {
         "qpos": result.qpos,
         "root_pose": result.root_pose,
         "fingertip_error_mm": result.fingertip_error_mm,
         "wrist_error_mm": result.wrist_error_mm,
     }
-    return StageOutput(arrays, combine(result.status, gate(src["status"])), method="casadi:ipopt-position")
+    return StageOutput(arrays, combine(qc.status, gate(src["status"])), method="casadi:ipopt-hybrid",
+                       details=qc.details, extra={"qc_contact_checked": qc.contact_checked, "qc_notes": qc.notes})
+
+
+def _qc(root: zarr.Group, job: ChunkJob, result, keypoints, valid, cfg: RetargetConfig, start: int, stop: int):
+    """Retargeting QC of frames [start, stop); contact/penetration against the object when the
+    source has one (mesh from the source, pose from ingest)."""
+    from handedit.retarget.qc import RetargetQCConfig, retarget_qc
+    from handedit.sources import open_source_json
+
+    mesh = pose = None
+    if job.context.get("has_object") and job.context.get("source"):
+        mesh = open_source_json(job.context["source"]).object_mesh()
+        pose = read_chunk(root, Unit("ingest", job.unit.clip), ["object_pose"], start, stop)["object_pose"]
+    return retarget_qc(result, keypoints, valid, job.unit.embodiment, RetargetQCConfig.from_retarget(cfg),
+                       cfg, object_mesh=mesh, object_pose=pose)
 
 
 def _hand_arm_body(root: zarr.Group, job: ChunkJob) -> StageOutput:
@@ -42,8 +60,14 @@ def _hand_arm_body(root: zarr.Group, job: ChunkJob) -> StageOutput:
               "fingertip_error_mm": res.fingertip_error_mm[a:b], "wrist_error_mm": res.wrist_error_mm[a:b]}
     ready = gate(src["status"][a:b])
     details = {i - a: d for i, d in res.details.items() if a <= i < b}
-    return StageOutput(arrays, combine(res.status[a:b], ready), method="casadi:ipopt-hybrid+virtual-base",
-                       details=details, extra={"virtual_base": res.summary()})
+    status = res.status[a:b].copy()
+    hand = res.hand.slice(a, b)
+    qc = _qc(root, job, hand, src["keypoints"][a:b], src["keypoints_valid"][a:b], RetargetConfig(**job.params), job.start, job.stop)
+    hand_bad = (qc.status != hand.status) & (status == 1)  # the hand's own QC rejection comes first
+    status[hand_bad] = qc.status[hand_bad]
+    details.update({i: qc.details[i] for i in np.flatnonzero(hand_bad) if i in qc.details})
+    return StageOutput(arrays, combine(status, ready), method="casadi:ipopt-hybrid+virtual-base", details=details,
+                       extra={"virtual_base": res.summary(), "qc_contact_checked": qc.contact_checked, "qc_notes": qc.notes})
 
 
 @task(**stage_options("retarget"))

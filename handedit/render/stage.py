@@ -15,7 +15,7 @@ from handedit.reasons import Reason
 class RenderConfig(BaseModel):
     """Render settings; ``decimate`` trades mesh detail for speed (bench/render.py)."""
 
-    VERSION: ClassVar[int] = 2
+    VERSION: ClassVar[int] = 3  # 3: decimate only simplifies dense meshes, silhouette-checked
     decimate: float | None = Field(None, gt=0.0, le=1.0, description="fraction of faces kept")
     min_visible_pixels: int = Field(20, ge=0, description="fewer robot pixels than this -> EMPTY_RENDER")
     materials: dict[str, tuple[float, float, float, float]] | None = Field(

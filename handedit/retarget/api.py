@@ -34,6 +34,11 @@ class RetargetResult:
     joint_names: list[str] = field(default_factory=list)
     solver_status: list[str] = field(default_factory=list)  # IPOPT return status per frame ("" if skipped)
 
+    def slice(self, a: int, b: int) -> "RetargetResult":
+        """Frames [a, b) (a chunk of a whole-sequence result)."""
+        return RetargetResult(self.qpos[a:b], self.root_pose[a:b], self.fingertip_error_mm[a:b], self.wrist_error_mm[a:b],
+                              self.status[a:b], list(self.joint_names), list(self.solver_status[a:b]))
+
 
 def get_retargeter(embodiment_id: str, cfg: RetargetConfig) -> Retargeter:
     """The per-process solver for (embodiment, config), built on first use."""

@@ -307,8 +307,8 @@ def _score(idx: int, grid_entry, track: _Track, arm: ArmModel, valid: np.ndarray
     bad_crit = crit & ~ok
     if bad_crit.any():
         codes = st[bad_crit]
-        r = Reason(int(np.bincount(codes).argmax()))
-        reason = r if r in (Reason.OUT_OF_REACH, Reason.IK_INFEASIBLE) else r
+        r = Reason(int(np.bincount(codes).argmax()))  # the commonest frame-level cause names the rejection
+        reason = r
         detail = f"{int(bad_crit.sum())} critical frame(s) fail ({r.name.lower().replace('_', ' ')}), first {int(np.flatnonzero(bad_crit)[0])}"
     elif np.any(st == Reason.JOINT_LIMIT):
         reason, detail = Reason.JOINT_LIMIT, "joint-limit violation"
