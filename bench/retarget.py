@@ -91,16 +91,16 @@ def print_table(title: str, rows: dict[str, dict]) -> None:
 
 
 def bench_hand_arm(clips) -> None:
-    from handedit.retarget.arm import ASSEMBLIES, arm_model
+    from handedit.retarget.arm import arm_model
     from handedit.retarget.virtual_base import VirtualBaseConfig, search_virtual_base, support_plane_from_world
 
     print(f"\nvirtual base (27 candidates, per clip of {len(clips[0][1])} frames)")
     print(f"{'embodiment':<16}{'L_r m':>7}{'search s':>9}{'valid':>6}{'chosen':>7}{'ee mm':>7}")
-    for emb in ASSEMBLIES:
+    for emb in [e.id for e in list_embodiments() if e.track == "hand_arm"]:
         try:
             arm = arm_model(emb)
         except EmbodimentError as exc:
-            print(f"  skip {emb}: {str(exc)[:100]}")
+            print(f"  skip {emb}: {str(exc)[:60]}")
             continue
         for name, kp, valid, wfc in clips[:1]:
             r = retarget(kp, valid, arm.hand_id, RetargetConfig())

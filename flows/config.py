@@ -42,6 +42,16 @@ class ClusterConfig(BaseModel):
     threads_per_worker: int = Field(1, ge=1, description="1: renderers and solvers are per process")
     memory_limit: str = "6GiB"
     dashboard_address: str = "127.0.0.1:0"
+    no_worker_timeout_s: float | None = Field(
+        None, gt=0, description="abort after this long without any worker (default: 120 s local, 1800 s otherwise)"
+    )
+
+    @property
+    def worker_timeout(self) -> float:
+        """Local workers should always be there; remote or adaptive ones may queue for a while."""
+        if self.no_worker_timeout_s is not None:
+            return self.no_worker_timeout_s
+        return 1800.0 if (self.address or self.cluster_class) else 120.0
 
     def task_runner(self):
         from prefect_dask import DaskTaskRunner

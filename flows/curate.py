@@ -27,7 +27,7 @@ import handedit
 from flows.config import CurateConfig
 from flows.dag import ClipPlan, Node, NodeId, build_nodes
 from flows.scheduler import DagResult, Prepared, run_dag
-from handedit.embodiments import EmbodimentError, describe_embodiment, get_embodiment
+from handedit.embodiments import EmbodimentError, describe_embodiment, get_embodiment, resolve_urdf
 from handedit.reasons import Reason
 from handedit.sources import SourceError, open_source
 from storage import Unit, create_or_open_store, create_unit, read_records, write_ledger_table, write_records
@@ -56,6 +56,7 @@ class EmbodimentPlan:
     joint_names: list[str]
     error: str | None = None
     reason: int = int(Reason.OK)
+    urdf_digest: str = ""  # content of the resolved (or composed) URDF
 
 
 def plan_clips(config: CurateConfig) -> tuple[list[ClipPlan], dict[str, str]]:
@@ -95,7 +96,8 @@ def plan_embodiments(ids: list[str]) -> list[EmbodimentPlan]:
         track = get_embodiment(emb_id).track
         try:
             _, joints = describe_embodiment(emb_id)
-            plans.append(EmbodimentPlan(emb_id, track, joints))
+            urdf = file_digest(resolve_urdf(get_embodiment(emb_id)))
+            plans.append(EmbodimentPlan(emb_id, track, joints, urdf_digest=urdf))
         except EmbodimentError as exc:
             plans.append(EmbodimentPlan(emb_id, track, [], f"{type(exc).__name__}: {exc}", int(exc.reason)))
     return plans
@@ -121,17 +123,21 @@ def stage_version_params(config: CurateConfig, stage: str) -> tuple[int, dict]:
     return int(getattr(type(cfg), "VERSION", 1)), cfg.model_dump(mode="json")
 
 
-def add_model_inputs(config: CurateConfig, nodes: list[Node]) -> None:
-    """A stage's model file is one of its inputs, by content: new weights at the same
-    path change the provenance key and re-run that stage."""
-    digests: dict[str, str] = {}
+def add_asset_inputs(config: CurateConfig, nodes: list[Node], embs: list[EmbodimentPlan]) -> None:
+    """Files a stage reads besides the store are inputs too, by content: a stage's model
+    weights, and the robot's URDF for the stages that load it. New weights or a new robot
+    description at the same path change the provenance key and re-run those stages."""
+    models: dict[str, str] = {}
     for stage in {n.unit.stage for n in nodes}:
         path = getattr(config.stage_config(stage), "model_path", None)
         if path:
-            digests[stage] = file_digest(Path(path))
+            models[stage] = file_digest(Path(path))
+    urdfs = {e.id: e.urdf_digest for e in embs}
     for node in nodes:
-        if node.unit.stage in digests:
-            node.fixed_inputs["model"] = digests[node.unit.stage]
+        if node.unit.stage in models:
+            node.fixed_inputs["model"] = models[node.unit.stage]
+        if node.unit.stage in ("retarget", "render") and node.unit.embodiment:
+            node.fixed_inputs["urdf"] = urdfs.get(node.unit.embodiment, "")
 
 
 def file_digest(path: Path) -> str:
@@ -155,6 +161,33 @@ def _file_digest(path: str, size: int, mtime_ns: int) -> str:
 def _matches_fault(config: CurateConfig, unit: Unit) -> bool:
     names = [f"{unit.stage}:{unit.clip}", f"{unit.stage}:{unit.clip}:{unit.embodiment or unit.scope or ''}"]
     return any(fnmatch.fnmatchcase(n, pat) for pat in config.inject_faults for n in names)
+
+
+class ClusterLost(RuntimeError):
+    """The Dask cluster has had no worker for longer than the configured timeout."""
+
+
+def _worker_watchdog(timeout_s: float):
+    """An ``on_idle`` callback: fail loudly instead of waiting forever on a dead cluster."""
+    since: list[float] = []
+
+    def on_idle(idle_s: float) -> None:
+        try:
+            n = len(get_run_context().task_runner.client.scheduler_info(n_workers=-1)["workers"])
+        except Exception:
+            n = -1  # cannot tell; keep waiting
+        if n != 0:
+            since.clear()
+            return
+        since.append(idle_s)
+        if idle_s - since[0] >= timeout_s:
+            raise ClusterLost(
+                f"no chunk finished for {idle_s:.0f} s and the Dask cluster has had no worker for "
+                f"{idle_s - since[0]:.0f} s; check the workers' logs (the dashboard link above), restart "
+                f"them, and re-run: finished chunks are kept and skipped"
+            )
+
+    return on_idle
 
 
 def _dashboard_link() -> str | None:
@@ -188,7 +221,7 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
     scopes = {e.id: e.scope for e in embs}
     window = int(getattr(config.restore_background, "window", 0))
     nodes = [n for c in clips for n in build_nodes(c, scopes, config.frames_per_chunk, window)]
-    add_model_inputs(config, nodes)
+    add_asset_inputs(config, nodes, embs)
     units = sorted({n.unit for n in nodes})
     for unit in units:
         version_, params = stage_version_params(config, unit.stage)
@@ -232,7 +265,8 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
         tqdm.write(f"Dask dashboard: {link or '(not available)'}")
     bar = tqdm(total=len(nodes), desc="curate", unit="chunk", disable=not progress)
     try:
-        result = run_dag(nodes, lambda stage: stage_version_params(config, stage), lambda nid: _stored(stored, nid), submit, complete, prefail, on_record, bar.update)
+        result = run_dag(nodes, lambda stage: stage_version_params(config, stage), lambda nid: _stored(stored, nid), submit, complete, prefail, on_record, bar.update,
+                         on_idle=_worker_watchdog(config.cluster.worker_timeout))
     finally:
         bar.close()
     return _finish(root, config, result, started, link, clip_errors)

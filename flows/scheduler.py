@@ -64,13 +64,17 @@ def run_dag(
     prefail: Callable[[Prepared], dict | None],
     on_record: Callable[[Node, dict], None],
     progress: Callable[[], None] = lambda: None,
+    on_idle: Callable[[float], None] = lambda idle_s: None,
+    poll_s: float = 30.0,
 ) -> DagResult:
     """Run every node once its dependencies are done.
 
     ``submit`` starts a node and returns a handle with ``add_done_callback``;
     ``complete(prepared, handle)`` turns a finished handle into (record, failed);
     ``prefail`` may return a failure record without running (e.g. missing assets);
-    ``on_record`` persists each new record (the driver's single write path).
+    ``on_record`` persists each new record (the driver's single write path);
+    ``on_idle(seconds)`` is called every ``poll_s`` without a completion and may raise
+    to abort (e.g. when the cluster has lost all its workers).
     """
     nodes = list(nodes)
     by_id = {n.id: n for n in nodes}
@@ -116,7 +120,14 @@ def run_dag(
             handle.add_done_callback(lambda _f, p=prep, h=handle: done_q.put((p, h)))
             in_flight += 1
         if in_flight:
-            prep, handle = done_q.get()
+            waited = 0.0
+            while True:
+                try:
+                    prep, handle = done_q.get(timeout=poll_s)
+                    break
+                except queue.Empty:
+                    waited += poll_s
+                    on_idle(waited)
             in_flight -= 1
             record, failed = complete(prep, handle)
             counts = result.counts[prep.node.unit.stage]

@@ -107,16 +107,24 @@ def create_unit(
     has_gt: bool = False,
     attrs: dict | None = None,
 ) -> zarr.Group:
-    """Driver: create (or reuse, when the shape matches) a unit's group and arrays."""
+    """Driver: create (or reuse, when the shape matches) a unit's group and arrays.
+
+    An array whose shape changed (e.g. an embodiment's DoF) is recreated empty, and the
+    unit's provenance is dropped with it, so none of its chunks counts as current.
+    """
     group = root.require_group(unit.path)
+    recreated = False
     for spec in arrays_for(unit.stage, has_object, has_gt):
         shape = spec.shape(n_frames, sizes)
         if spec.name in group:
             existing = group[spec.name]
             if tuple(existing.shape) == shape and str(existing.dtype) == spec.dtype:
                 continue
-            del group[spec.name]  # shape changed (e.g. new embodiment DoF): recreate
+            del group[spec.name]
+            recreated = True
         _create_array(group, spec, shape, frames_per_chunk)
+    if recreated:
+        group.attrs.update({"provenance": {}})
     if attrs:
         group.attrs.update(jsonable(attrs))
     return group

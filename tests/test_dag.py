@@ -83,3 +83,29 @@ def test_failures_are_counted_and_do_not_stop_the_dag():
     assert result.counts["qc"].ran == 3  # downstream still ran (and sees non-OK status)
     assert not any(nid[0].stage == "retarget" for nid in order)  # prefailed: never submitted
     assert len(written) == len(nodes)
+
+
+class Never:
+    """A handle whose task never finishes (a cluster that lost its workers)."""
+
+    def add_done_callback(self, fn):
+        pass
+
+
+def test_idle_driver_asks_the_watchdog_and_can_abort():
+    nodes = build_nodes(CLIP, {"allegro": "hand"}, 8, 3)
+    calls = []
+
+    def on_idle(idle_s):
+        calls.append(idle_s)
+        if len(calls) == 3:
+            raise RuntimeError("no worker")
+
+    try:
+        run_dag(nodes, lambda s: (1, {}), lambda nid: None, lambda prep: Never(), lambda p, h: ({}, False),
+                lambda prep: None, lambda n, r: None, on_idle=on_idle, poll_s=0.01)
+    except RuntimeError as exc:
+        assert "no worker" in str(exc)
+    else:
+        raise AssertionError("the driver kept waiting")
+    assert calls == sorted(calls) and len(calls) == 3

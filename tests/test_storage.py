@@ -146,3 +146,13 @@ def test_store_open_errors(tmp_path):
     create_or_open_store(tmp_path / "s.zarr", 4, "t")
     with pytest.raises(StoreError, match="frames_per_chunk=4"):
         create_or_open_store(tmp_path / "s.zarr", 8, "t")
+
+
+def test_recreated_array_drops_provenance(root):
+    unit = Unit("retarget", "c1", embodiment="e")
+    create_unit(root, unit, 8, {"dof": 16}, F)
+    write_records(root, unit, [ChunkRecord("retarget", 0, 0, 4, "k", 1, {}, {})])
+    create_unit(root, unit, 8, {"dof": 16}, F)  # same shapes: records kept
+    assert read_records(root, unit)
+    create_unit(root, unit, 8, {"dof": 22}, F)  # new DoF: empty array, nothing is current
+    assert root[unit.path]["qpos"].shape == (8, 22) and read_records(root, unit) == {}

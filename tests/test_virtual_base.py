@@ -164,3 +164,13 @@ def test_arm_ik_warm_and_cold_agree(assets):
         assert s.pos_err_mm < 0.5 and s.rot_err_deg < 0.1
     np.testing.assert_allclose(arm.wrist_pose(warm.x), arm.wrist_pose(cold.x), atol=1e-3)
     assert arm.reach > 0.5 and arm.n == 7
+
+
+def test_ready_pose_is_collision_free(assets):
+    """Franka's standard ready pose: the compact wrist + hand group must not read as a self-collision."""
+    arm = arm_model("panda_allegro")
+    q = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
+    assert not self_collision(arm.chain(q), arm.moving, CFG.link_radius, arm.distal)
+    # folding the forearm back onto the upper arm is caught
+    folded = np.array([0.0, 0.3, 0.0, -3.0, 0.0, 0.5, 0.785])
+    assert self_collision(arm.chain(folded), arm.moving, CFG.link_radius, arm.distal)

@@ -107,6 +107,9 @@ class ArmModel:
         # which may touch the table; its contact is checked by retargeting QC)
         hand_links = {self._n(l) for l in self.hand_kin.link_names}
         self.arm_points = self.moving & np.array([l not in hand_links for l in path] + [False])
+        # the wrist + hand group for self-collision: hand points, palm centre, last two arm points
+        self.distal = self.moving & ~self.arm_points
+        self.distal[np.flatnonzero(self.arm_points)[-2:]] = True
 
         p_t, R_t, q_prev = ca.SX.sym("p_t", 3), ca.SX.sym("R_t", 3, 3), ca.SX.sym("q_prev", self.n)
         w_s = ca.SX.sym("w_s")

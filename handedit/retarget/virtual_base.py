@@ -194,22 +194,32 @@ def _seg_dist(p1, q1, p2, q2) -> float:
     return float(np.linalg.norm(p1 + d1 * s - p2 - d2 * t))
 
 
-def _segments(chain: np.ndarray, moving: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Capsule axes between consecutive distinct chain points, starting at the last fixed point."""
+def _segments(chain: np.ndarray, moving: np.ndarray, labels: np.ndarray | None = None):
+    """Capsule axes between consecutive distinct chain points, starting at the last fixed
+    point; with ``labels`` (per point) also each segment's end-point label."""
     pts = chain.T
     first = max(int(np.argmax(moving)) - 1, 0)
-    keep = [pts[first]]
-    for p in pts[first + 1:]:
-        if np.linalg.norm(p - keep[-1]) > 1e-3:
-            keep.append(p)
-    return list(zip(keep[:-1], keep[1:]))
+    keep, lab = [pts[first]], [None if labels is None else labels[first]]
+    for k in range(first + 1, len(pts)):
+        if np.linalg.norm(pts[k] - keep[-1]) > 1e-3:
+            keep.append(pts[k])
+            lab.append(None if labels is None else labels[k])
+    segs = list(zip(keep[:-1], keep[1:]))
+    return segs if labels is None else (segs, lab[1:])
 
 
-def self_collision(chain: np.ndarray, moving: np.ndarray, radius: float) -> bool:
-    """Non-adjacent capsules (index gap >= 2) closer than 2 * radius."""
-    segs = _segments(chain, moving)
+def self_collision(chain: np.ndarray, moving: np.ndarray, radius: float, distal: np.ndarray | None = None) -> bool:
+    """Non-adjacent capsules (index gap >= 3) closer than 2 * radius. ``distal`` marks chain
+    points of the compact wrist + hand group (its segments are never tested against each
+    other: there the capsule-through-origins model folds back on itself by construction)."""
+    if distal is None:
+        segs, d = _segments(chain, moving), None
+    else:
+        segs, d = _segments(chain, moving, distal)
     for i in range(len(segs)):
         for j in range(i + 3, len(segs)):
+            if d is not None and d[i] and d[j]:
+                continue
             if _seg_dist(*segs[i], *segs[j]) < 2 * radius:
                 return True
     return False
@@ -279,7 +289,7 @@ def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, 
             status[i] = Reason.OUT_OF_REACH if far else Reason.IK_INFEASIBLE
         elif np.any(q < arm.lower - cfg.joint_limit_tol) or np.any(q > arm.upper + cfg.joint_limit_tol):
             status[i] = Reason.JOINT_LIMIT
-        elif self_collision(ch, arm.moving, cfg.link_radius):
+        elif self_collision(ch, arm.moving, cfg.link_radius, arm.distal):
             status[i] = Reason.COLLISION
         elif plane is not None and plane_clearance(chains[i], arm.arm_points, plane) < cfg.link_radius + cfg.plane_margin:
             status[i] = Reason.COLLISION
