@@ -81,34 +81,43 @@ def build_nodes(
     for emb, scope in embodiments.items():
         restore = Unit("restore_background", c, scope=scope)
         ret, ren, comp, harm, qc = (Unit(st, c, embodiment=emb) for st in ("retarget", "render", "composite", "harmonize", "qc"))
+        seq = scope == "hand_arm"  # the virtual base is fixed per sequence: one retarget node per clip
+        if seq:
+            nodes.append(Node(ret, 0, 0, clip.n_frames, *_hand_arm_retarget(ingest, ranges, base_ctx, clip)))
         for k, (s, e) in enumerate(ranges):
+            rk = 0 if seq else k  # the retarget node a chunk reads
             comp_deps = [Dep(restore, k, ("background", "status")), Dep(ren, k, ("rgba", "depth", "status"))]
             comp_ctx = {**base_ctx, "scope": scope}
             if clip.has_object:  # object mask + pose, and the source for its mesh (depth occlusion)
                 comp_deps.append(Dep(ingest, k, ("object_mask", "object_pose")))
                 comp_ctx["source"] = clip.source_json
-            upstream = [ingest, segment, restore, ret, ren, comp, harm]
+            upstream = [(ingest, k), (segment, k), (restore, k), (ret, rk), (ren, k), (comp, k), (harm, k)]
+            if not seq:
+                nodes.append(Node(ret, k, s, e, *_hand_retarget(ingest, k, base_ctx, clip)))
             nodes += [
-                Node(ret, k, s, e, *_retarget_deps(ingest, k, ranges, scope, base_ctx, clip)),
-                Node(ren, k, s, e, [Dep(ret, k, ("qpos", "root_pose", "status"))], base_ctx, camera),
+                Node(ren, k, s, e, [Dep(ret, rk, ("qpos", "root_pose", "status"))], base_ctx, camera),
                 Node(comp, k, s, e, comp_deps, comp_ctx),
                 Node(harm, k, s, e, [Dep(comp, k, ("image", "robot_mask", "status"))], base_ctx),
-                Node(qc, k, s, e, [Dep(u, k, ("status",)) for u in upstream],
-                     {"upstream": [{"stage": u.stage, "clip": u.clip, "scope": u.scope, "embodiment": u.embodiment} for u in upstream]}),
+                Node(qc, k, s, e, [Dep(u, j, ("status",)) for u, j in upstream],
+                     {"upstream": [{"stage": u.stage, "clip": u.clip, "scope": u.scope, "embodiment": u.embodiment}
+                                   for u, _ in upstream]}),
             ]
     return nodes
 
 
-def _retarget_deps(ingest: Unit, k: int, ranges: list[tuple[int, int]], scope: str, ctx: dict,
-                   clip: ClipPlan) -> tuple[list[Dep], dict]:
-    """Hand-only: the chunk's own keypoints. Hand-arm: the virtual base is fixed per sequence,
-    so every chunk reads the whole clip's keypoints and camera poses (each chunk runs the
-    same deterministic search; a worker caches it) and writes only its own frames. With an
-    object, its pose (and the source, for its mesh) feed the contact/penetration QC."""
+def _hand_retarget(ingest: Unit, k: int, ctx: dict, clip: ClipPlan) -> tuple[list[Dep], dict]:
+    """Hand-only: one node per chunk on the chunk's keypoints; with an object, its pose
+    (and the source, for its mesh) feed the contact/penetration QC."""
     obj = ("object_pose",) if clip.has_object else ()
     ctx = {**ctx, "source": clip.source_json} if clip.has_object else ctx
-    if scope != "hand_arm":
-        return [Dep(ingest, k, ("keypoints", "keypoints_valid", "status", *obj))], ctx
-    deps = [Dep(ingest, j, ("keypoints", "keypoints_valid", "world_from_camera", "status", *(obj if j == k else ())))
-            for j in range(len(ranges))]
+    return [Dep(ingest, k, ("keypoints", "keypoints_valid", "status", *obj))], ctx
+
+
+def _hand_arm_retarget(ingest: Unit, ranges: list[tuple[int, int]], ctx: dict, clip: ClipPlan) -> tuple[list[Dep], dict]:
+    """Hand-arm: one node for the whole clip. The virtual-base search scores every
+    candidate over the sequence, so it runs once and writes all of the unit's frames (the
+    unit's only writer); render chunks then read their frames of it."""
+    obj = ("object_pose",) if clip.has_object else ()
+    ctx = {**ctx, "source": clip.source_json} if clip.has_object else ctx
+    deps = [Dep(ingest, j, ("keypoints", "keypoints_valid", "world_from_camera", "status", *obj)) for j in range(len(ranges))]
     return deps, {**ctx, "track": "hand_arm", "clip_frames": [0, ranges[-1][1]]}

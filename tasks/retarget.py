@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import numpy as np
 import zarr
 from prefect import task
 
@@ -45,28 +44,24 @@ def _qc(root: zarr.Group, job: ChunkJob, result, keypoints, valid, cfg: Retarget
 
 
 def _hand_arm_body(root: zarr.Group, job: ChunkJob) -> StageOutput:
-    """Whole-sequence hand retargeting + virtual base + arm IK; this chunk's frames are written,
-    the sequence-level record (all 27 candidate scores, choice, policy) goes to provenance."""
-    from handedit.retarget.hand_arm import retarget_hand_arm
+    """Hand-arm: one job covers the whole clip (the virtual base is fixed per sequence);
+    the sequence-level record (all 27 candidate scores, the choice and its policy) goes to
+    provenance."""
+    from handedit.retarget.hand_arm import merge_hand_qc, retarget_hand_arm
 
-    lo, hi = job.context["clip_frames"]
-    src = read_chunk(root, Unit("ingest", job.unit.clip), ["keypoints", "keypoints_valid", "world_from_camera", "status"], lo, hi)
+    src = read_chunk(root, Unit("ingest", job.unit.clip), ["keypoints", "keypoints_valid", "world_from_camera", "status"],
+                     job.start, job.stop)
     # an operator's choice from `handedit review` (read fresh: the cached root may predate it)
     review = (open_store(job.store).attrs.get("reviews") or {}).get(f"{job.unit.clip}/{job.unit.embodiment}")
-    res = retarget_hand_arm(src["keypoints"], src["keypoints_valid"], job.unit.embodiment, RetargetConfig(**job.params),
+    cfg = RetargetConfig(**job.params)
+    res = retarget_hand_arm(src["keypoints"], src["keypoints_valid"], job.unit.embodiment, cfg,
                             world_from_camera=src["world_from_camera"], choice=None if review is None else review["choice"])
-    a, b = job.start - lo, job.stop - lo
-    arrays = {"qpos": res.qpos[a:b], "root_pose": res.root_pose[a:b],
-              "fingertip_error_mm": res.fingertip_error_mm[a:b], "wrist_error_mm": res.wrist_error_mm[a:b]}
-    ready = gate(src["status"][a:b])
-    details = {i - a: d for i, d in res.details.items() if a <= i < b}
-    status = res.status[a:b].copy()
-    hand = res.hand.slice(a, b)
-    qc = _qc(root, job, hand, src["keypoints"][a:b], src["keypoints_valid"][a:b], RetargetConfig(**job.params), job.start, job.stop)
-    hand_bad = (qc.status != hand.status) & (status == 1)  # the hand's own QC rejection comes first
-    status[hand_bad] = qc.status[hand_bad]
-    details.update({i: qc.details[i] for i in np.flatnonzero(hand_bad) if i in qc.details})
-    return StageOutput(arrays, combine(status, ready), method="casadi:ipopt-hybrid+virtual-base", details=details,
+    qc = _qc(root, job, res.hand, src["keypoints"], src["keypoints_valid"], cfg, job.start, job.stop)
+    status, details = merge_hand_qc(res, qc)
+    arrays = {"qpos": res.qpos, "root_pose": res.root_pose,
+              "fingertip_error_mm": res.fingertip_error_mm, "wrist_error_mm": res.wrist_error_mm}
+    return StageOutput(arrays, combine(status, gate(src["status"])), method="casadi:ipopt-hybrid+virtual-base",
+                       details=details,
                        extra={"virtual_base": res.summary(), "qc_contact_checked": qc.contact_checked, "qc_notes": qc.notes})
 
 

@@ -23,7 +23,13 @@ class Done:
 def test_nodes_and_dependencies():
     nodes = build_nodes(CLIP, {"allegro": "hand", "ur5e_shadow": "hand_arm"}, frames_per_chunk=8, restore_window=3)
     by_id = {n.id: n for n in nodes}
-    assert len(nodes) == 3 * (2 + 2 + 5 * 2)  # 3 chunks x (ingest, segment, 2 scopes, 2 embodiments x 5 stages)
+    # 3 chunks x (ingest, segment, 2 scopes, 5 hand stages, 4 hand-arm stages) + 1 sequence-level retarget
+    assert len(nodes) == 3 * (2 + 2 + 5 + 4) + 1
+    seq = by_id[(Unit("retarget", "c", embodiment="ur5e_shadow"), 0)]
+    assert (seq.start, seq.stop) == (0, 20) and {d.chunk for d in seq.deps} == {0, 1, 2}
+    assert (Unit("retarget", "c", embodiment="ur5e_shadow"), 1) not in by_id
+    render = by_id[(Unit("render", "c", embodiment="ur5e_shadow"), 2)]
+    assert [(d.unit.stage, d.chunk) for d in render.deps] == [("retarget", 0)]
     restore = by_id[(Unit("restore_background", "c", scope="hand"), 1)]
     assert restore.context["window"] == [5, 19]
     assert {(d.unit.stage, d.chunk) for d in restore.deps} == {(s, k) for s in ("ingest", "segment") for k in (0, 1, 2)}

@@ -12,13 +12,12 @@ support-plane check runs; with identity (unknown) camera poses the base is fixed
 camera frame, "up" is image up and the support-plane check is recorded as not possible.
 
 Outputs follow the composed URDF: qpos columns in its joint order, ``root_pose`` is
-camera_from_base per frame. Results are cached per process by input digest, so the chunk
-tasks of one sequence that land on the same worker search once.
+camera_from_base per frame. The curate flow runs this once per (clip, embodiment): the
+hand-arm retarget unit is sequence-level (see flows/dag.py).
 """
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -64,16 +63,7 @@ def retarget_hand_arm(keypoints: np.ndarray, keypoints_valid: np.ndarray, embodi
     kp = np.ascontiguousarray(keypoints, dtype=np.float32)
     va = np.ascontiguousarray(keypoints_valid, dtype=bool)
     wfc = None if world_from_camera is None else np.ascontiguousarray(world_from_camera, dtype=np.float64)
-    h = hashlib.sha256(kp.tobytes() + va.tobytes() + (b"" if wfc is None else wfc.tobytes())).hexdigest()
-    key = (h, embodiment_id, cfg, vb_cfg or VirtualBaseConfig(), choice)
-    if key not in _CACHE:
-        while len(_CACHE) >= 8:
-            _CACHE.pop(next(iter(_CACHE)))
-        _CACHE[key] = _solve(embodiment_id, cfg, key[3], choice, kp, va, wfc)
-    return _CACHE[key]
-
-
-_CACHE: dict[tuple, HandArmResult] = {}  # per process: chunk tasks of one sequence search once
+    return _solve(embodiment_id, cfg, vb_cfg or VirtualBaseConfig(), choice, kp, va, wfc)
 
 
 def _solve(embodiment_id: str, cfg: RetargetConfig, vb_cfg: VirtualBaseConfig, choice,
@@ -125,6 +115,17 @@ def _solve(embodiment_id: str, cfg: RetargetConfig, vb_cfg: VirtualBaseConfig, c
     qpos = np.clip(qpos, np.where(np.isfinite(lo), lo, -np.inf), np.where(np.isfinite(hi), hi, np.inf))
     return HandArmResult(qpos.astype(np.float32), root, hand.fingertip_error_mm, hand.wrist_error_mm, status, details,
                          vb, list(names), notes, hand)
+
+
+def merge_hand_qc(res: HandArmResult, qc) -> tuple[np.ndarray, dict[int, str]]:
+    """Status of a hand-arm sequence with the hand's own QC (contact, penetration) folded
+    in: a hand rejection comes first where the arm solution was otherwise OK."""
+    status = res.status.copy()
+    details = dict(res.details)
+    hand_bad = (qc.status != res.hand.status) & (status == Reason.OK)
+    status[hand_bad] = qc.status[hand_bad]
+    details.update({int(i): qc.details[int(i)] for i in np.flatnonzero(hand_bad) if int(i) in qc.details})
+    return status, details
 
 
 def apply_review(vb: VirtualBaseResult, choice: int, arm=None) -> VirtualBaseResult:
