@@ -75,10 +75,15 @@ class Unit:
         return f"{self.stage}[{self.clip}{'/' + extra if extra else ''}]"
 
 
+def safe_name(kind: str, name: str) -> str:
+    """One path segment of the store or a benchmark folder: never empty, no '/', no dotfile."""
+    if not name or "/" in name or name.startswith("."):
+        raise ValueError(f"invalid {kind} {name!r}: use letters, digits, '-', '_', '.' (no '/', not starting with '.')")
+    return name
+
+
 def clip_path(clip: str) -> str:
-    if not clip or "/" in clip or clip.startswith("."):
-        raise ValueError(f"invalid clip id {clip!r}: use letters, digits, '-', '_' (no '/')")
-    return f"clips/{clip}"
+    return f"clips/{safe_name('clip id', clip)}"
 
 
 LEDGER_PATH = "ledger"
@@ -203,9 +208,7 @@ TRACKS = {"hand": "hand-only", "hand_arm": "hand-arm"}  # scope -> track name
 
 
 def bench_item_dir(item_id: str) -> str:
-    if not item_id or "/" in item_id or item_id.startswith("."):
-        raise ValueError(f"invalid benchmark item id {item_id!r}")
-    return f"items/{item_id}"
+    return f"items/{safe_name('benchmark item id', item_id)}"
 
 
 def bench_ref_paths(embodiment: str, view: int) -> tuple[str, str]:
@@ -213,13 +216,11 @@ def bench_ref_paths(embodiment: str, view: int) -> tuple[str, str]:
 
 
 def bench_prediction_dir(editor: str) -> str:
-    if not editor or "/" in editor or editor.startswith("."):
-        raise ValueError(f"invalid editor name {editor!r}: letters, digits, '-', '_', '.'")
-    return f"predictions/{editor}"
+    return f"predictions/{safe_name('editor name', editor)}"
 
 
 def bench_results_dir(editor: str) -> str:
-    return f"results/{bench_prediction_dir(editor).split('/', 1)[1]}"
+    return f"results/{safe_name('editor name', editor)}"
 
 
 BENCH_VLM_CACHE = "vlm_cache"
@@ -239,6 +240,4 @@ BANK_ARRAYS: tuple[str, ...] = ("rgb", "mask", "camera_from_root", "qpos", "K")
 
 
 def bank_embodiment_path(embodiment_id: str) -> str:
-    if not embodiment_id or "/" in embodiment_id or embodiment_id.startswith("."):
-        raise ValueError(f"invalid embodiment id {embodiment_id!r}")
-    return f"{BANK_GROUP}/{embodiment_id}"
+    return f"{BANK_GROUP}/{safe_name('embodiment id', embodiment_id)}"
