@@ -219,12 +219,13 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
         _create_units(root, config, c, embs)
 
     scopes = {e.id: e.scope for e in embs}
-    window = int(getattr(config.restore_background, "window", 0))
+    window = config.restore_background.window
     nodes = [n for c in clips for n in build_nodes(c, scopes, config.frames_per_chunk, window)]
     add_asset_inputs(config, nodes, embs)
     units = sorted({n.unit for n in nodes})
+    stage_params = {stage: stage_version_params(config, stage) for stage in {u.stage for u in units}}
     for unit in units:
-        version_, params = stage_version_params(config, unit.stage)
+        version_, params = stage_params[unit.stage]
         set_attrs(root, unit.path, {"stage": unit.stage, "version": version_, "params": params})
     stored = {u: read_records(root, u) for u in units}
     failed_embs = {e.id: e for e in embs if e.error}
@@ -265,8 +266,8 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
         tqdm.write(f"Dask dashboard: {link or '(not available)'}")
     bar = tqdm(total=len(nodes), desc="curate", unit="chunk", disable=not progress)
     try:
-        result = run_dag(nodes, lambda stage: stage_version_params(config, stage), lambda nid: _stored(stored, nid), submit, complete, prefail, on_record, bar.update,
-                         on_idle=_worker_watchdog(config.cluster.worker_timeout))
+        result = run_dag(nodes, stage_params.__getitem__, lambda nid: _stored(stored, nid), submit, complete,
+                         prefail, on_record, bar.update, on_idle=_worker_watchdog(config.cluster.worker_timeout))
     finally:
         bar.close()
     return _finish(root, config, result, started, link, clip_errors)
