@@ -33,7 +33,7 @@ from handedit.sources import SourceError, open_source
 from storage import Unit, create_or_open_store, create_unit, read_records, write_ledger_table, write_records
 from storage.ledger import read_ledger, status_counts
 from storage.provenance import ChunkRecord
-from storage.store import dumps, jsonable, now_iso, set_attrs
+from storage.store import create_previews, dumps, jsonable, now_iso, set_attrs
 from tasks import STAGE_TASKS
 from tasks.common import RETRIES, ChunkJob, failure_record, is_transient
 
@@ -115,6 +115,8 @@ def _create_units(root, config: CurateConfig, clip: ClipPlan, embs: list[Embodim
             extra = {"joint_names": emb.joint_names} if stage == "retarget" else None
             create_unit(root, Unit(stage, clip.clip, embodiment=emb.id), clip.n_frames,
                         {**sizes, "dof": len(emb.joint_names)}, f, attrs=extra)
+        if emb.scope == "hand_arm":
+            create_previews(root, Unit("retarget", clip.clip, embodiment=emb.id), clip.height, clip.width)
 
 
 def stage_version_params(config: CurateConfig, stage: str) -> tuple[int, dict]:

@@ -88,6 +88,19 @@ def clip_path(clip: str) -> str:
 
 LEDGER_PATH = "ledger"
 
+# Review previews of a hand-arm sequence's top virtual-base candidates: a sequence-level
+# group inside its retarget unit (not per frame), written by the one retarget task.
+#   <retarget unit>/previews/ego, third   (K, P, H, W, 4) uint8   K candidates x P frames
+#   <retarget unit>/previews/candidates   (K,) int16 (-1: none)   frames (P,) int32
+PREVIEW_CANDIDATES = 3
+PREVIEW_FRAMES = 3
+
+
+def preview_path(unit: Unit) -> str:
+    if unit.stage != "retarget" or unit.embodiment is None:
+        raise ValueError(f"previews belong to a hand-arm retarget unit, not {unit.label}")
+    return f"{unit.path}/previews"
+
 
 @dataclass(frozen=True)
 class ArraySpec:

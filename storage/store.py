@@ -19,7 +19,8 @@ import numpy as np
 import zarr
 from zarr.codecs import BloscCodec, BloscShuffle
 
-from storage.layout import ARRAYS, SCHEMA_VERSION, ArraySpec, Unit, arrays_for
+from storage.layout import (ARRAYS, PREVIEW_CANDIDATES, PREVIEW_FRAMES, SCHEMA_VERSION, ArraySpec, Unit, arrays_for,
+                            preview_path)
 
 IMAGE_CODEC = BloscCodec(cname="zstd", clevel=3, shuffle=BloscShuffle.bitshuffle)
 
@@ -143,6 +144,40 @@ def _create_array(group: zarr.Group, spec: ArraySpec, shape: tuple[int, ...], f:
             spec.name, shape=shape, dtype=spec.dtype, chunks=(f, *tail),
             fill_value=spec.fill, dimension_names=dims,
         )
+
+
+def create_previews(root: zarr.Group, unit: Unit, height: int, width: int) -> None:
+    """Driver: the (empty) review-preview group of a hand-arm retarget unit."""
+    group = root.require_group(preview_path(unit))
+    k, p = PREVIEW_CANDIDATES, PREVIEW_FRAMES
+    for name in ("ego", "third"):
+        if name not in group or group[name].shape != (k, p, height, width, 4):
+            group.create_array(name, shape=(k, p, height, width, 4), dtype="uint8", chunks=(1, 1, height, width, 4),
+                               compressors=IMAGE_CODEC, fill_value=0, overwrite=True,
+                               dimension_names=("candidate", "preview_frame", "y", "x", "rgba"))
+    group.create_array("candidates", shape=(k,), dtype="int16", fill_value=-1, overwrite=True, dimension_names=("candidate",))
+    group.create_array("frames", shape=(p,), dtype="int32", fill_value=-1, overwrite=True, dimension_names=("preview_frame",))
+
+
+def write_previews(root: zarr.Group, unit: Unit, candidates: list[int], frames: list[int],
+                   ego: np.ndarray, third: np.ndarray) -> dict[str, str]:
+    """Task: the top candidates' egocentric and third-person renders (the unit's one writer)."""
+    group = root[preview_path(unit)]
+    k, p = len(candidates), len(frames)
+    group["candidates"][:] = np.array([*candidates, *[-1] * (PREVIEW_CANDIDATES - k)], np.int16)
+    group["frames"][:p] = np.asarray(frames, np.int32)
+    group["ego"][:k, :p] = ego
+    group["third"][:k, :p] = third
+    return {"previews/ego": digest(ego), "previews/third": digest(third)}
+
+
+def read_previews(root: zarr.Group, unit: Unit) -> dict[str, np.ndarray]:
+    group = root[preview_path(unit)]
+    cands = group["candidates"][:]
+    k = int((cands >= 0).sum())
+    frames = group["frames"][:]
+    p = int((frames >= 0).sum())
+    return {"candidates": cands[:k], "frames": frames[:p], "ego": group["ego"][:k, :p], "third": group["third"][:k, :p]}
 
 
 def digest(array: np.ndarray) -> str:

@@ -7,7 +7,9 @@ from prefect import task
 
 from handedit.reasons import combine, gate
 from handedit.retarget import RetargetConfig, retarget as retarget_keypoints
+from handedit.camera import Intrinsics
 from storage import Unit, open_store, read_chunk
+from storage.store import write_previews
 from tasks._options import stage_options
 from tasks.common import ChunkJob, StageOutput, execute
 
@@ -48,6 +50,7 @@ def _hand_arm_body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     the sequence-level record (all 27 candidate scores, the choice and its policy) goes to
     provenance."""
     from handedit.retarget.hand_arm import merge_hand_qc, retarget_hand_arm
+    from handedit.retarget.preview import top_previews
 
     src = read_chunk(root, Unit("ingest", job.unit.clip), ["keypoints", "keypoints_valid", "world_from_camera", "status"],
                      job.start, job.stop)
@@ -58,11 +61,14 @@ def _hand_arm_body(root: zarr.Group, job: ChunkJob) -> StageOutput:
                             world_from_camera=src["world_from_camera"], choice=None if review is None else review["choice"])
     qc = _qc(root, job, res.hand, src["keypoints"], src["keypoints_valid"], cfg, job.start, job.stop)
     status, details = merge_hand_qc(res, qc)
+    previews = write_previews(root, job.unit, *top_previews(res, Intrinsics(**job.context["intrinsics"]),
+                                                              world_from_camera=src["world_from_camera"]))
     arrays = {"qpos": res.qpos, "root_pose": res.root_pose,
               "fingertip_error_mm": res.fingertip_error_mm, "wrist_error_mm": res.wrist_error_mm}
     return StageOutput(arrays, combine(status, gate(src["status"])), method="casadi:ipopt-hybrid+virtual-base",
                        details=details,
-                       extra={"virtual_base": res.summary(), "qc_contact_checked": qc.contact_checked, "qc_notes": qc.notes})
+                       extra={"virtual_base": res.summary(), "previews": previews,
+                              "qc_contact_checked": qc.contact_checked, "qc_notes": qc.notes})
 
 
 @task(**stage_options("retarget"))

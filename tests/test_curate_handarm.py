@@ -80,6 +80,13 @@ def test_hand_arm_track(run):
     assert len(vb[0]["candidates"]) == 27 and vb[0]["selected_by"] == "auto:top1"
     assert vb[0]["chosen"] == vb[0]["ranking"][0]
     assert all("reason_name" in c and "critical_success" in c for c in vb[0]["candidates"])
+    # the top-3 candidates' egocentric and third-person previews are in the store
+    from storage.store import read_previews
+
+    pv = read_previews(root, Unit("retarget", clip, embodiment=EMB))
+    assert list(pv["candidates"]) == vb[0]["ranking"][:3] and list(pv["frames"]) == [0, T // 2, T - 1]
+    assert (pv["ego"][..., 3] > 0).any(axis=(2, 3)).all() and (pv["third"][..., 3] > 0).any(axis=(2, 3)).all()
+    assert recs[0].extra["previews"]["previews/ego"]
     ren = root[Unit("render", clip, embodiment=EMB).path]
     drawn = ren["status"][:] == Reason.OK
     assert drawn.any() and (ren["rgba"][:][drawn][..., 3] > 0).any(axis=(1, 2)).all()

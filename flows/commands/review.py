@@ -98,39 +98,28 @@ def cmd_review(args: argparse.Namespace) -> int:
 
 
 def _write_previews(root, args, found) -> int:
+    """PNGs of the stored previews: egocentric renders over the source frame, third-person as rendered."""
+    import cv2
     import numpy as np
-    from PIL import Image
 
-    from handedit.camera import Intrinsics
-    from handedit.retarget import RetargetConfig
-    from handedit.retarget.hand_arm import retarget_hand_arm
-    from handedit.retarget.preview import render_previews
-    from storage import Unit, read_records
+    from storage import Unit
+    from storage.store import read_previews
 
     (c, e), vb = next(iter(found.items()))
-    src = root[Unit("ingest", c).path]
-    info = (root.attrs.get("clips") or {})[c]
-    rec = next(iter(read_records(root, Unit("retarget", c, embodiment=e)).values()))
-    intr_d = dict(root[Unit("ingest", c).path].attrs.get("info", {}).get("intrinsics") or {})
-    if not intr_d:
-        print(f"error: no camera intrinsics stored for {c}", file=sys.stderr)
+    pv = read_previews(root, Unit("retarget", c, embodiment=e))
+    if len(pv["candidates"]) == 0:
+        print(f"error: no previews stored for {c}/{e} (no valid candidate, or not curated yet)", file=sys.stderr)
         return 2
-    intr = Intrinsics(**intr_d)
-    wfc = src["world_from_camera"][:]
-    res = retarget_hand_arm(src["keypoints"][:], src["keypoints_valid"][:], e, RetargetConfig(**rec.params),
-                            world_from_camera=wfc)
-    n = info.get("n_frames", len(wfc))
-    frames = sorted({0, n // 2, n - 1})
     out = Path(args.previews)
     out.mkdir(parents=True, exist_ok=True)
-    frames_rgb = src["frames"]
-    for cand, views in render_previews(res, intr, frames=frames, world_from_camera=wfc).items():
-        for k, f in enumerate(frames):
-            rgba = views["ego"][k].astype(float) / 255
+    frames_rgb = root[Unit("ingest", c).path]["frames"]
+    for i, cand in enumerate(pv["candidates"]):
+        for j, f in enumerate(pv["frames"]):
+            rgba = pv["ego"][i, j].astype(float) / 255
             over = (frames_rgb[f] * (1 - rgba[..., 3:]) + 255 * rgba[..., :3] * rgba[..., 3:]).astype(np.uint8)
-            Image.fromarray(over).save(out / f"{c}_{e}_cand{cand}_ego_f{f:05d}.png")
-            Image.fromarray(views["third"][k]).save(out / f"{c}_{e}_cand{cand}_third_f{f:05d}.png")
-    print(f"previews of candidates {vb['ranking'][:3]} -> {out}")
+            cv2.imwrite(str(out / f"{c}_{e}_cand{cand}_ego_f{f:05d}.png"), cv2.cvtColor(over, cv2.COLOR_RGB2BGR))
+            cv2.imwrite(str(out / f"{c}_{e}_cand{cand}_third_f{f:05d}.png"), cv2.cvtColor(pv["third"][i, j], cv2.COLOR_RGBA2BGRA))
+    print(f"previews of candidates {list(pv['candidates'])} -> {out}")
     return 0
 
 

@@ -50,3 +50,20 @@ def render_previews(res: HandArmResult, intr: Intrinsics, candidates: list[int] 
         third = render_embodiment(vb.embodiment_id, q, np.tile(tp_from_base, (len(frames), 1, 1)), intr)
         out[c] = {"ego": ego.rgba, "third": third.rgba, "joint_names": np.array(names)}
     return out
+
+
+def top_previews(res: HandArmResult, intr: Intrinsics, world_from_camera: np.ndarray | None = None,
+                 top: int = 3) -> tuple[list[int], list[int], np.ndarray, np.ndarray]:
+    """What an operator reviews: the top candidates at the first, middle and last frame.
+
+    Returns (candidates, frames, ego (K,P,H,W,4), third (K,P,H,W,4)); K = 0 when no
+    candidate survived the search.
+    """
+    n = len(res.qpos)
+    frames = sorted({0, n // 2, n - 1})
+    cands = res.virtual_base.ranking[:top]
+    shape = (0, len(frames), intr.height, intr.width, 4)
+    if not cands:
+        return [], frames, np.zeros(shape, np.uint8), np.zeros(shape, np.uint8)
+    views = render_previews(res, intr, candidates=cands, frames=frames, world_from_camera=world_from_camera)
+    return cands, frames, np.stack([views[c]["ego"] for c in cands]), np.stack([views[c]["third"] for c in cands])
