@@ -2,9 +2,27 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
+
+
+class VirtualBaseConfig(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+    VERSION: ClassVar[int] = 1
+
+    init_back: float = Field(0.55, description="base distance behind the wrist centre, in L_r")
+    init_up: float = Field(0.10, description="base height above the wrist centre, in L_r")
+    pos_tol_mm: float = Field(10.0, gt=0, description="IK position error above which a frame is infeasible")
+    rot_tol_deg: float = Field(5.0, gt=0)
+    link_radius: float = Field(0.035, gt=0, description="capsule radius of arm links (m)")
+    plane_margin: float = Field(0.005, ge=0, description="clearance required above the support plane (m)")
+    max_joint_step: float = Field(0.5, gt=0, description="largest joint change between frames (rad) before a discontinuity")
+    joint_limit_tol: float = Field(1e-6, ge=0)
+    smooth: float = Field(1e-2, ge=0)
+    n_seeds: int = Field(6, ge=1, description="IK restarts on the first frame of a candidate")
+    review: Literal["auto_top1", "manual"] = "auto_top1"
+    top_k: int = Field(3, ge=1)
 
 
 class RetargetConfig(BaseModel):
@@ -39,6 +57,8 @@ class RetargetConfig(BaseModel):
     contact_mm: float = Field(10.0, gt=0)
     contact_distance_mm: float = Field(20.0, gt=0)
     penetration_mm: float = Field(10.0, gt=0)
+    # hand-arm embodiments: the sequence-level virtual-base search and its review policy
+    virtual_base: VirtualBaseConfig = Field(default_factory=VirtualBaseConfig)
 
     def weight(self, kind: str) -> float:
         return float(getattr(self, f"{'fingertip' if kind == 'tip' else kind}_weight"))

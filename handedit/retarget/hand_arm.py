@@ -63,7 +63,7 @@ def retarget_hand_arm(keypoints: np.ndarray, keypoints_valid: np.ndarray, embodi
     kp = np.ascontiguousarray(keypoints, dtype=np.float32)
     va = np.ascontiguousarray(keypoints_valid, dtype=bool)
     wfc = None if world_from_camera is None else np.ascontiguousarray(world_from_camera, dtype=np.float64)
-    return _solve(embodiment_id, cfg, vb_cfg or VirtualBaseConfig(), choice, kp, va, wfc)
+    return _solve(embodiment_id, cfg, vb_cfg or cfg.virtual_base, choice, kp, va, wfc)
 
 
 def _solve(embodiment_id: str, cfg: RetargetConfig, vb_cfg: VirtualBaseConfig, choice,

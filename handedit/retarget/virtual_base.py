@@ -26,35 +26,16 @@ centre (radius ``link_radius``): conservative and cheap, no mesh queries per fra
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
-from typing import ClassVar, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from handedit.reasons import STATUS_DTYPE, Reason
 from handedit.retarget.arm import ArmModel, arm_model
+from handedit.retarget.config import VirtualBaseConfig
 
 GRID_LATERAL = (-0.10, 0.0, 0.10)
 GRID_FORWARD = (-0.15, 0.0, 0.15)
 GRID_YAW_DEG = (-15.0, 0.0, 15.0)
-
-
-class VirtualBaseConfig(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
-    VERSION: ClassVar[int] = 1
-
-    init_back: float = Field(0.55, description="base distance behind the wrist centre, in L_r")
-    init_up: float = Field(0.10, description="base height above the wrist centre, in L_r")
-    pos_tol_mm: float = Field(10.0, gt=0, description="IK position error above which a frame is infeasible")
-    rot_tol_deg: float = Field(5.0, gt=0)
-    link_radius: float = Field(0.035, gt=0, description="capsule radius of arm links (m)")
-    plane_margin: float = Field(0.005, ge=0, description="clearance required above the support plane (m)")
-    max_joint_step: float = Field(0.5, gt=0, description="largest joint change between frames (rad) before a discontinuity")
-    joint_limit_tol: float = Field(1e-6, ge=0)
-    smooth: float = Field(1e-2, ge=0)
-    n_seeds: int = Field(6, ge=1, description="IK restarts on the first frame of a candidate")
-    review: Literal["auto_top1", "manual"] = "auto_top1"
-    top_k: int = Field(3, ge=1)
 
 
 @dataclass
