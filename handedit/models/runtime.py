@@ -105,6 +105,15 @@ def _providers() -> list[str]:
     return [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in avail]
 
 
+def _mismatch(kind: str, spec, got, required: bool) -> str | None:
+    """What is wrong with one tensor of a model against its contract entry, if anything."""
+    if got is None:
+        return f"missing {kind} '{spec.name}'" if required else None
+    if len(got.shape) != spec.rank or got.type != spec.dtype:
+        return f"{kind} '{spec.name}' is {got.type} rank {len(got.shape)}, expected {spec.dtype} rank {spec.rank}"
+    return None
+
+
 def load_model(path: str | os.PathLike, contract: Contract) -> LoadedModel:
     """Open ``path`` and check it against ``contract`` (cached per file content and process)."""
     p = Path(path).expanduser()
@@ -132,27 +141,14 @@ def _load_cached(path: str, mtime_ns: int, size: int, contract: Contract) -> Loa
                                  f"expected an ONNX file with {contract.signature()}") from exc
     got_in = {i.name: i for i in sess.get_inputs()}
     got_out = {o.name: o for o in sess.get_outputs()}
-    problems = []
-    for t in contract.inputs:
-        i = got_in.get(t.name)
-        if i is None:
-            problems.append(f"missing input '{t.name}'")
-        elif len(i.shape) != t.rank or i.type != t.dtype:
-            problems.append(f"input '{t.name}' is {i.type} rank {len(i.shape)}, expected {t.dtype} rank {t.rank}")
-    for t in contract.optional_inputs:
-        i = got_in.get(t.name)
-        if i is not None and (len(i.shape) != t.rank or i.type != t.dtype):
-            problems.append(f"input '{t.name}' is {i.type} rank {len(i.shape)}, expected {t.dtype} rank {t.rank}")
+    checks = [("input", t, got_in.get(t.name), True) for t in contract.inputs]
+    checks += [("input", t, got_in.get(t.name), False) for t in contract.optional_inputs]
+    checks += [("output", t, got_out.get(t.name), True) for t in contract.outputs]
+    problems = [msg for msg in (_mismatch(*c) for c in checks) if msg]
     known = {t.name for t in (*contract.inputs, *contract.optional_inputs)}
     extra = sorted(set(got_in) - known)
     if extra:
         problems.append(f"unexpected inputs {extra}")
-    for t in contract.outputs:
-        o = got_out.get(t.name)
-        if o is None:
-            problems.append(f"missing output '{t.name}'")
-        elif len(o.shape) != t.rank or o.type != t.dtype:
-            problems.append(f"output '{t.name}' is {o.type} rank {len(o.shape)}, expected {t.dtype} rank {t.rank}")
     if problems:
         have = ", ".join(f"{i.name}:{i.type}{list(i.shape)}" for i in sess.get_inputs())
         raise ModelContractError(
