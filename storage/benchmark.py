@@ -112,25 +112,26 @@ def decode_image(data: bytes, what: str = "image") -> np.ndarray:
     return cv2.cvtColor(a, cv2.COLOR_BGR2RGB)
 
 
-def read_image(path: str | Path) -> np.ndarray:
-    """PNG/JPEG -> uint8 (H,W,3) RGB; a clear error naming the file otherwise."""
+def _imread(path: str | Path, flags: int, what: str, fix: str = "") -> np.ndarray:
+    """cv2.imread with errors that name the file: missing, or not a decodable image."""
     path = Path(path)
     if not path.is_file():
-        raise BenchIOError(f"image not found: {path}")
-    a = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        raise BenchIOError(f"{what} not found: {path}")
+    a = cv2.imread(str(path), flags)
     if a is None:
-        raise BenchIOError(f"cannot decode image {path} (corrupt or not an image); re-run the editor for this item")
+        raise BenchIOError(f"cannot decode {what} {path} (corrupt or not an image){fix}")
+    return a
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """PNG/JPEG -> uint8 (H,W,3) RGB; a clear error naming the file otherwise."""
+    a = _imread(path, cv2.IMREAD_COLOR, "image", "; re-run the editor for this item")
     return cv2.cvtColor(a, cv2.COLOR_BGR2RGB)
 
 
 def read_mask(path: str | Path) -> np.ndarray:
     """Grey/colour PNG -> bool mask (any channel > 127)."""
-    path = Path(path)
-    if not path.is_file():
-        raise BenchIOError(f"mask not found: {path}")
-    a = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if a is None:
-        raise BenchIOError(f"cannot decode mask {path}")
+    a = _imread(path, cv2.IMREAD_UNCHANGED, "mask")
     return (a > 127) if a.ndim == 2 else (a[..., :3] > 127).any(axis=-1)
 
 

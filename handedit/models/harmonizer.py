@@ -34,12 +34,7 @@ CONTRACT = Contract(
 
 def harmonize_onnx_frame(model, image: np.ndarray, mask: np.ndarray, cfg) -> np.ndarray:
     H, W = image.shape[:2]
-    fixed = model.fixed_hw("composite")
-    if fixed is None:
-        s = min(1.0, cfg.work_max_side / max(H, W))
-        mh, mw = max(1, int(round(H * s))), max(1, int(round(W * s)))
-    else:
-        mh, mw = fixed
+    mh, mw = model.work_hw("composite", H, W, cfg.work_max_side)
     comp = cv2.resize(image, (mw, mh), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
     mk = cv2.resize(mask.astype(np.float32), (mw, mh), interpolation=cv2.INTER_LINEAR)
     feeds = {"composite": comp.transpose(2, 0, 1)[None], "mask": mk[None, None]}

@@ -42,12 +42,7 @@ def inpaint_onnx(frames: np.ndarray, holes: np.ndarray, targets: np.ndarray, ok:
     """Restored ``frames[targets]`` (uint8) and the provenance tag; holes are (m,H,W) bool."""
     model = load_model(cfg.model_path, CONTRACT)
     m, H, W = frames.shape[:3]
-    fixed = model.fixed_hw("frames")
-    if fixed is None:
-        s = min(1.0, cfg.work_max_side / max(H, W))
-        mh, mw = max(1, int(round(H * s))), max(1, int(round(W * s)))
-    else:
-        mh, mw = fixed
+    mh, mw = model.work_hw("frames", H, W, cfg.work_max_side)
     usable = np.flatnonzero(ok)
     T = model.fixed_dim("frames", 1) or min(2 * cfg.window + 1, max(1, len(usable)))
     small = {}

@@ -69,6 +69,15 @@ class LoadedModel:
             return int(shape[-2]), int(shape[-1])
         return None
 
+    def work_hw(self, name: str, height: int, width: int, max_side: int) -> tuple[int, int]:
+        """The (H, W) to feed input ``name``: the model's fixed size if it declares one, else
+        the image scaled down (never up) so its longer side is at most ``max_side``."""
+        fixed = self.fixed_hw(name)
+        if fixed is not None:
+            return fixed
+        s = min(1.0, max_side / max(height, width))
+        return max(1, int(round(height * s))), max(1, int(round(width * s)))
+
     def fixed_dim(self, name: str, axis: int) -> int | None:
         shape = self.input_shapes.get(name) or []
         d = shape[axis] if len(shape) > abs(axis) else None

@@ -106,12 +106,7 @@ def segment_onnx(frames: np.ndarray, kp2d: np.ndarray, kval: np.ndarray, cfg) ->
 
     model = load_model(cfg.model_path, CONTRACT)
     n, H, W = frames.shape[:3]
-    fixed = model.fixed_hw("image")
-    if fixed is None:
-        s = min(1.0, cfg.work_max_side / max(H, W))
-        mh, mw = max(1, int(round(H * s))), max(1, int(round(W * s)))
-    else:
-        mh, mw = fixed
+    mh, mw = model.work_hw("image", H, W, cfg.work_max_side)
     sx, sy = mw / W, mh / H
     hand = np.zeros((n, H, W), bool)
     arm = np.zeros((n, H, W), bool)
