@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -20,8 +21,10 @@ def _erd_allegro(monkeypatch) -> Path:
 
 
 def _hand_urdfs(robots_dir: Path) -> list[Path]:
-    urdfs = sorted((robots_dir / "hands").glob("*/*.urdf"))
-    assert len(urdfs) == 6
+    """Every hand URDF the shared assets' manifest lists (it grows as robots are added)."""
+    manifest = json.loads((robots_dir / "manifest.json").read_text())
+    urdfs = sorted(robots_dir / v["urdf"] for v in manifest.values() if v["kind"] == "hand")
+    assert urdfs and all(p.is_file() for p in urdfs), urdfs
     return urdfs
 
 
