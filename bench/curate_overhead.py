@@ -28,11 +28,11 @@ os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "180")
 
 def bare_loop(config) -> float:
     """Every node in DAG order, in this process, no orchestration. Returns seconds."""
-    from flows.curate import plan_clips, plan_embodiments, stage_version_params, _create_units
-    from flows.dag import build_nodes
-    from storage import create_or_open_store
-    from tasks import STAGE_BODIES
-    from tasks.common import ChunkJob, execute
+    from handedit.flows.curate import plan_clips, plan_embodiments, stage_version_params, _create_units
+    from handedit.flows.dag import build_nodes
+    from handedit.storage import create_or_open_store
+    from handedit.tasks import STAGE_BODIES
+    from handedit.tasks.common import ChunkJob, execute
 
     t0 = time.perf_counter()
     root = create_or_open_store(config.out, config.frames_per_chunk, "bench")
@@ -63,8 +63,8 @@ def main() -> None:
     from distributed import LocalCluster
     from prefect.testing.utilities import prefect_test_harness
 
-    from flows.config import ClusterConfig, CurateConfig
-    from flows.curate import run_curate
+    from handedit.flows.config import ClusterConfig, CurateConfig
+    from handedit.flows.curate import run_curate
     from handedit.sources.synthetic import make_clip_specs
 
     tmp = Path(tempfile.mkdtemp(prefix="handedit-bench-"))

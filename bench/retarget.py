@@ -127,7 +127,7 @@ def main() -> int:
     cold = cfg.model_copy(update={"warm_start": False})
     print_table("same, cold (hybrid vector+position init every frame)", {e: bench_hand(e, clips, cold) for e in ids})
     for f in args.trajectory:
-        from flows.commands.retarget import load_keypoints
+        from handedit.flows.commands.retarget import load_keypoints
 
         kp, valid = load_keypoints(f)
         print_table(f"trajectory {f}", {e: bench_hand(e, [(f, kp, valid, None)], cfg) for e in ids})

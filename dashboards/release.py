@@ -19,8 +19,8 @@ import numpy as np
 import zarr
 
 from handedit.reasons import Reason
-from storage import Unit, read_ledger, status_counts
-from storage.ledger import iter_units
+from handedit.storage import Unit, read_ledger, status_counts
+from handedit.storage.ledger import iter_units
 
 MAX_LEDGER_ROWS = 300
 

@@ -26,7 +26,5 @@ fi
 
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
-# compat mode puts the repo root on sys.path: Dask workers prepend their scratch dir,
-# whose spill folder is named storage/, and a strict editable finder would lose to it.
-.venv/bin/python -m pip install -q -e ".${extras}" --config-settings editable_mode=compat
+.venv/bin/python -m pip install -q -e ".${extras}"
 echo "handedit is set up in $(pwd)/.venv"

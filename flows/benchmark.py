@@ -24,11 +24,11 @@ from handedit.benchmark.prices import price_per_image
 from handedit.benchmark.testset import TRACK_NAMES, TestItem, instruction, item_id, select_frames
 from handedit.embodiments import get_embodiment
 from handedit.reasons import Reason
-from storage import Unit, open_store
-from storage.benchmark import (BenchDir, BenchIOError, append_jsonl, decode_image, encode_png, iter_jsonl, read_json,
+from handedit.storage import Unit, open_store
+from handedit.storage.benchmark import (BenchDir, BenchIOError, append_jsonl, decode_image, encode_png, iter_jsonl, read_json,
                                write_bytes, write_image, write_json, write_jsonl, write_text)
-from storage.layout import SCOPE_MASK
-from storage.store import now_iso
+from handedit.storage.layout import SCOPE_MASK
+from handedit.storage.store import now_iso
 
 log = logging.getLogger("handedit.bench")
 
@@ -102,7 +102,7 @@ def _write_refs(out: BenchDir, embs: list[str], bank: str | Path | None) -> dict
         log.error("no reference bank given: items get no reference render; ID fidelity's S_ref is skipped "
                   "(build one with `handedit bank build --out bank.zarr`)")
         return {}
-    from storage.bank import read_bank
+    from handedit.storage.bank import read_bank
 
     refs = {}
     for emb in embs:

@@ -40,12 +40,12 @@ def store_path(out: str | Path) -> Path:
 
 
 def _build_config(args: argparse.Namespace):
-    from flows.config import ClusterConfig, CurateConfig
+    from handedit.flows.config import ClusterConfig, CurateConfig
     from handedit.sources import VideoSpec
     from handedit.sources.synthetic import make_clip_specs
 
     if args.config:
-        from flows.curate import load_config
+        from handedit.flows.curate import load_config
 
         return load_config(args.config, args.cluster, str(store_path(args.out)) if args.out else None)
     if not args.out:
@@ -71,7 +71,7 @@ def _build_config(args: argparse.Namespace):
 def cmd_curate(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
-    from flows.curate import run_curate
+    from handedit.flows.curate import run_curate
 
     try:
         config = _build_config(args)
@@ -81,7 +81,7 @@ def cmd_curate(args: argparse.Namespace) -> int:
     print(f"curating {len(config.clips)} clip(s) x {len(config.embodiments)} embodiment(s) into {config.out}")
     where = config.cluster.address or f"a local Dask cluster ({config.cluster.n_workers} worker processes)"
     print(f"running on {where}; the Dask dashboard link follows when the cluster is up")
-    from storage import StoreError
+    from handedit.storage import StoreError
 
     try:
         summary = run_curate(config, progress=not args.no_progress)
@@ -116,7 +116,7 @@ def print_summary(summary: dict) -> None:
 
 
 def _open(args: argparse.Namespace):
-    from storage import StoreError, open_store
+    from handedit.storage import StoreError, open_store
 
     try:
         return open_store(store_path(args.store))
@@ -125,7 +125,7 @@ def _open(args: argparse.Namespace):
 
 
 def cmd_ledger(args: argparse.Namespace) -> int:
-    from storage import read_ledger
+    from handedit.storage import read_ledger
 
     ledger = read_ledger(_open(args))
     if args.csv:
@@ -138,7 +138,7 @@ def cmd_ledger(args: argparse.Namespace) -> int:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    from storage import status_counts
+    from handedit.storage import status_counts
 
     root = _open(args)
     print(status_counts(root).to_string(index=False))
@@ -149,7 +149,7 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def cmd_dashboard(args: argparse.Namespace) -> int:
-    from dashboards.release import write_page
+    from handedit.dashboards.release import write_page
 
     store = store_path(args.store)
     out = Path(args.out) if args.out else store.parent / "qa.html"
@@ -198,7 +198,7 @@ def parser() -> argparse.ArgumentParser:
     db.add_argument("--out", help="default: STORE_DIR/qa.html")
     db.set_defaults(func=cmd_dashboard)
 
-    from flows.commands import register_all
+    from handedit.flows.commands import register_all
 
     register_all(sub)
     return p

@@ -24,18 +24,18 @@ from prefect.context import get_run_context
 from tqdm import tqdm
 
 import handedit
-from flows.config import CurateConfig
-from flows.dag import ClipPlan, Node, NodeId, build_nodes
-from flows.scheduler import DagResult, Prepared, run_dag
+from handedit.flows.config import CurateConfig
+from handedit.flows.dag import ClipPlan, Node, NodeId, build_nodes
+from handedit.flows.scheduler import DagResult, Prepared, run_dag
 from handedit.embodiments import EmbodimentError, describe_embodiment, get_embodiment, resolve_urdf
 from handedit.reasons import Reason
 from handedit.sources import SourceError, open_source
-from storage import Unit, create_or_open_store, create_unit, read_records, write_ledger_table, write_records
-from storage.ledger import read_ledger, status_counts
-from storage.provenance import ChunkRecord
-from storage.store import create_previews, dumps, jsonable, now_iso, set_attrs
-from tasks import STAGE_TASKS
-from tasks.common import RETRIES, ChunkJob, failure_record, is_transient
+from handedit.storage import Unit, create_or_open_store, create_unit, read_records, write_ledger_table, write_records
+from handedit.storage.ledger import read_ledger, status_counts
+from handedit.storage.provenance import ChunkRecord
+from handedit.storage.store import create_previews, dumps, jsonable, now_iso, set_attrs
+from handedit.tasks import STAGE_TASKS
+from handedit.tasks.common import RETRIES, ChunkJob, failure_record, is_transient
 
 
 def code_version() -> str:

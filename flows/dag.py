@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from storage.layout import SCOPE_MASK, Unit, chunk_ranges
-from storage.store import dumps
+from handedit.storage.layout import SCOPE_MASK, Unit, chunk_ranges
+from handedit.storage.store import dumps
 
 NodeId = tuple[Unit, int]
 

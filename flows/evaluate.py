@@ -19,16 +19,16 @@ import pandas as pd
 from prefect import flow, get_run_logger
 from pydantic import BaseModel, Field
 
-from flows.benchmark import load_manifest
-from flows.config import ClusterConfig
+from handedit.flows.benchmark import load_manifest
+from handedit.flows.config import ClusterConfig
 from handedit.metrics.embodied import EmbodiedConfig
 from handedit.metrics.encoders import ENCODERS, missing_encoders
 from handedit.metrics.frechet import fid
 from handedit.metrics.suite import EXTRAS, METRICS
 from handedit.metrics.vlm import JudgeConfig
-from storage.benchmark import write_json, write_text
-from storage.store import now_iso
-from tasks.evaluate import EvalJob, evaluate_chunk
+from handedit.storage.benchmark import write_json, write_text
+from handedit.storage.store import now_iso
+from handedit.tasks.evaluate import EvalJob, evaluate_chunk
 
 ITEMS_CSV, SUMMARY_JSON = "items.csv", "summary.json"
 

@@ -17,8 +17,8 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Callable, Iterable
 
-from flows.dag import Node, NodeId
-from storage.provenance import is_current, provenance_key
+from handedit.flows.dag import Node, NodeId
+from handedit.storage.provenance import is_current, provenance_key
 
 
 @dataclass

@@ -4,10 +4,10 @@ One package owns paths and schemas (``storage.layout``); nothing else builds sto
 paths by hand. The store opens with plain ``zarr``, ``dask.array`` and ``xarray``.
 """
 
-from storage.layout import ARRAYS, SCOPES, STAGES, Unit, chunk_ranges
-from storage.ledger import read_ledger, status_counts, write_ledger_table
-from storage.provenance import ChunkRecord, is_current, provenance_key, read_records, write_records
-from storage.store import (
+from handedit.storage.layout import ARRAYS, SCOPES, STAGES, Unit, chunk_ranges
+from handedit.storage.ledger import read_ledger, status_counts, write_ledger_table
+from handedit.storage.provenance import ChunkRecord, is_current, provenance_key, read_records, write_records
+from handedit.storage.store import (
     StoreError,
     create_or_open_store,
     create_unit,

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import zarr
 
-from storage.layout import BANK_GROUP, BANK_SCHEMA_VERSION, bank_embodiment_path
-from storage.store import IMAGE_CODEC, StoreError, jsonable
+from handedit.storage.layout import BANK_GROUP, BANK_SCHEMA_VERSION, bank_embodiment_path
+from handedit.storage.store import IMAGE_CODEC, StoreError, jsonable
 
 
 @dataclass(frozen=True)

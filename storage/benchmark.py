@@ -17,9 +17,9 @@ from typing import Any, Iterable, Iterator
 import cv2
 import numpy as np
 
-from storage.layout import (BENCH_ITEM_FILES, BENCH_MANIFEST, BENCH_META, BENCH_REPORT, BENCH_VLM_CACHE,
+from handedit.storage.layout import (BENCH_ITEM_FILES, BENCH_MANIFEST, BENCH_META, BENCH_REPORT, BENCH_VLM_CACHE,
                             bench_item_dir, bench_prediction_dir, bench_ref_paths, bench_results_dir)
-from storage.store import jsonable
+from handedit.storage.store import jsonable
 
 
 class BenchIOError(RuntimeError):

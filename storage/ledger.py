@@ -14,8 +14,8 @@ import pandas as pd
 import zarr
 
 from handedit.reasons import Reason
-from storage.layout import LEDGER_COLUMNS, LEDGER_PATH, STAGE_LEVEL, Unit
-from storage.provenance import read_records
+from handedit.storage.layout import LEDGER_COLUMNS, LEDGER_PATH, STAGE_LEVEL, Unit
+from handedit.storage.provenance import read_records
 
 
 def iter_units(root: zarr.Group):

@@ -24,8 +24,8 @@ from typing import Any
 
 import zarr
 
-from storage.layout import Unit
-from storage.store import dumps, jsonable
+from handedit.storage.layout import Unit
+from handedit.storage.store import dumps, jsonable
 
 PROVENANCE_ATTR = "provenance"
 

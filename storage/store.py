@@ -19,7 +19,7 @@ import numpy as np
 import zarr
 from zarr.codecs import BloscCodec, BloscShuffle
 
-from storage.layout import (ARRAYS, PREVIEW_CANDIDATES, PREVIEW_FRAMES, SCHEMA_VERSION, ArraySpec, Unit, arrays_for,
+from handedit.storage.layout import (ARRAYS, PREVIEW_CANDIDATES, PREVIEW_FRAMES, SCHEMA_VERSION, ArraySpec, Unit, arrays_for,
                             preview_path)
 
 IMAGE_CODEC = BloscCodec(cname="zstd", clevel=3, shuffle=BloscShuffle.bitshuffle)

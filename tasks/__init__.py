@@ -4,14 +4,14 @@ Each returns a provenance record to the flow driver. Retries live here (tasks._o
 the math lives in ``handedit``.
 """
 
-from tasks import composite as _composite
-from tasks import harmonize as _harmonize
-from tasks import ingest as _ingest
-from tasks import qc as _qc
-from tasks import render as _render
-from tasks import restore_background as _restore_background
-from tasks import retarget as _retarget
-from tasks import segment as _segment
+from handedit.tasks import composite as _composite
+from handedit.tasks import harmonize as _harmonize
+from handedit.tasks import ingest as _ingest
+from handedit.tasks import qc as _qc
+from handedit.tasks import render as _render
+from handedit.tasks import restore_background as _restore_background
+from handedit.tasks import retarget as _retarget
+from handedit.tasks import segment as _segment
 
 _MODULES = {
     "ingest": _ingest,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from prefect.cache_policies import NO_CACHE
 
-from tasks.common import RETRIES, RETRY_DELAYS, retry_transient
+from handedit.tasks.common import RETRIES, RETRY_DELAYS, retry_transient
 
 
 def stage_options(stage: str) -> dict:

@@ -17,8 +17,8 @@ import numpy as np
 import zarr
 
 from handedit.reasons import Reason
-from storage import ChunkRecord, Unit, write_chunk
-from storage.store import now_iso
+from handedit.storage import ChunkRecord, Unit, write_chunk
+from handedit.storage.store import now_iso
 
 # Failures worth another attempt: I/O hiccups, lost connections, resource pressure.
 TRANSIENT = (OSError, TimeoutError, ConnectionError, MemoryError)

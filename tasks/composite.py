@@ -17,9 +17,9 @@ from handedit.reasons import combine, gate
 from handedit.sources import open_source_json
 from handedit.vision.composite import CompositeConfig, composite as composite_frames
 from handedit.vision.object_depth import object_occluder
-from storage import Unit, read_chunk
-from tasks._options import stage_options
-from tasks.common import ChunkJob, StageOutput, execute
+from handedit.storage import Unit, read_chunk
+from handedit.tasks._options import stage_options
+from handedit.tasks.common import ChunkJob, StageOutput, execute
 
 
 def _object_mesh(source_json: str | None):

@@ -22,8 +22,8 @@ from handedit.metrics.embodied import EmbodiedConfig
 from handedit.metrics.encoders import Encoders, load_encoders
 from handedit.metrics.suite import ItemImages, score_item
 from handedit.metrics.vlm import JudgeConfig, VlmJudge
-from storage.benchmark import read_image, read_mask
-from tasks.common import RETRIES, RETRY_DELAYS, retry_transient
+from handedit.storage.benchmark import read_image, read_mask
+from handedit.tasks.common import RETRIES, RETRY_DELAYS, retry_transient
 
 
 @dataclass(frozen=True)

@@ -7,9 +7,9 @@ from prefect import task
 
 from handedit.reasons import combine, gate
 from handedit.vision.harmonize import HarmonizeConfig, harmonize as harmonize_frames
-from storage import Unit, read_chunk
-from tasks._options import stage_options
-from tasks.common import ChunkJob, StageOutput, execute
+from handedit.storage import Unit, read_chunk
+from handedit.tasks._options import stage_options
+from handedit.tasks.common import ChunkJob, StageOutput, execute
 
 
 def body(root: zarr.Group, job: ChunkJob) -> StageOutput:

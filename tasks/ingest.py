@@ -6,8 +6,8 @@ import zarr
 from prefect import task
 
 from handedit.sources import frame_status, open_source_json
-from tasks._options import stage_options
-from tasks.common import ChunkJob, StageOutput, execute
+from handedit.tasks._options import stage_options
+from handedit.tasks.common import ChunkJob, StageOutput, execute
 
 
 def body(root: zarr.Group, job: ChunkJob) -> StageOutput:

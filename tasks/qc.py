@@ -6,9 +6,9 @@ import zarr
 from prefect import task
 
 from handedit.qc import QCConfig, final_status
-from tasks._options import stage_options
-from tasks.common import ChunkJob, StageOutput, execute
-from storage import Unit, read_chunk
+from handedit.tasks._options import stage_options
+from handedit.tasks.common import ChunkJob, StageOutput, execute
+from handedit.storage import Unit, read_chunk
 
 
 def body(root: zarr.Group, job: ChunkJob) -> StageOutput:

@@ -9,9 +9,9 @@ from prefect import task
 from handedit.camera import Intrinsics
 from handedit.reasons import Reason, combine, gate
 from handedit.render.stage import RenderConfig, render_stage
-from storage import Unit, read_chunk
-from tasks._options import stage_options
-from tasks.common import ChunkJob, StageOutput, execute
+from handedit.storage import Unit, read_chunk
+from handedit.tasks._options import stage_options
+from handedit.tasks.common import ChunkJob, StageOutput, execute
 
 
 def body(root: zarr.Group, job: ChunkJob) -> StageOutput:

@@ -12,10 +12,10 @@ from prefect import task
 
 from handedit.reasons import combine, gate
 from handedit.vision.restore_background import RestoreConfig, restore_background as restore
-from storage import Unit, read_chunk
-from storage.layout import SCOPE_MASK
-from tasks._options import stage_options
-from tasks.common import ChunkJob, StageOutput, execute
+from handedit.storage import Unit, read_chunk
+from handedit.storage.layout import SCOPE_MASK
+from handedit.tasks._options import stage_options
+from handedit.tasks.common import ChunkJob, StageOutput, execute
 
 
 def body(root: zarr.Group, job: ChunkJob) -> StageOutput:

@@ -8,10 +8,10 @@ from prefect import task
 from handedit.reasons import combine, gate
 from handedit.retarget import RetargetConfig, retarget as retarget_keypoints
 from handedit.camera import Intrinsics
-from storage import Unit, open_store, read_chunk
-from storage.store import write_previews
-from tasks._options import stage_options
-from tasks.common import ChunkJob, StageOutput, execute
+from handedit.storage import Unit, open_store, read_chunk
+from handedit.storage.store import write_previews
+from handedit.tasks._options import stage_options
+from handedit.tasks.common import ChunkJob, StageOutput, execute
 
 
 def body(root: zarr.Group, job: ChunkJob) -> StageOutput:

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from flows.cli import main
+from handedit.flows.cli import main
 from handedit.embodiments import get_embodiment
-from storage.bank import bank_embodiments, read_bank, read_bank_entry
-from storage.store import StoreError
+from handedit.storage.bank import bank_embodiments, read_bank, read_bank_entry
+from handedit.storage.store import StoreError
 
 
 @pytest.fixture(autouse=True)

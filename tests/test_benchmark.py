@@ -18,10 +18,10 @@ import pytest
 
 from _bench_onnx import write_encoders
 from _fake_openai import FakeOpenAI
-from flows.benchmark import build_testset, editor_cost, export_manifest, load_manifest, run_editor, write_report
-from flows.config import ClusterConfig, CurateConfig
-from flows.curate import run_curate
-from flows.evaluate import EvaluateConfig, run_evaluate
+from handedit.flows.benchmark import build_testset, editor_cost, export_manifest, load_manifest, run_editor, write_report
+from handedit.flows.config import ClusterConfig, CurateConfig
+from handedit.flows.curate import run_curate
+from handedit.flows.evaluate import EvaluateConfig, run_evaluate
 from handedit.benchmark.editors import CommandEditor, HttpEditorConfig, HttpImageEditor
 from handedit.benchmark.manifest import TOOLKIT_FIELDS
 from handedit.embodiments import get_embodiment
@@ -30,10 +30,10 @@ from handedit.render.bank import BankConfig, render_bank_views
 from handedit.reasons import Reason
 from handedit.sources import open_source
 from handedit.sources.synthetic import make_clip_specs
-from storage import Unit, create_or_open_store, create_unit, write_chunk
-from storage.bank import BankEntry, write_bank_entry
-from storage.store import set_attrs
-from storage.benchmark import BenchDir, iter_jsonl, read_image, read_mask, write_image
+from handedit.storage import Unit, create_or_open_store, create_unit, write_chunk
+from handedit.storage.bank import BankEntry, write_bank_entry
+from handedit.storage.store import set_attrs
+from handedit.storage.benchmark import BenchDir, iter_jsonl, read_image, read_mask, write_image
 
 EMB = "allegro"
 N_SOURCES = 4
@@ -231,7 +231,7 @@ def test_http_editor_cost_resume_and_failures(bench):
 def test_manifest_roundtrip_and_line_errors(tmp_path):
     from handedit.benchmark.manifest import ManifestItem
     from handedit.benchmark.testset import instruction_for_target
-    from storage.benchmark import write_jsonl
+    from handedit.storage.benchmark import write_jsonl
 
     base = {k: "" for k in TOOLKIT_FIELDS}
     good = {**base, "id": "x1", "replacement_scope": "hand", "target_name": "Allegro", "src_path": "imgs/a.png",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from flows.cli import main
+from handedit.flows.cli import main
 
 
 def test_curate_demo_then_status_ledger_dashboard(tmp_path, capsys, prefect_api, dask_cluster):

@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from flows.config import ClusterConfig, CurateConfig
-from flows.curate import run_curate
+from handedit.flows.config import ClusterConfig, CurateConfig
+from handedit.flows.curate import run_curate
 from handedit.reasons import Reason
 from handedit.sources import VideoSpec
 from handedit.sources.synthetic import make_clip_specs
-from storage import ARRAYS, Unit, open_store, read_ledger, read_records
-from storage.layout import arrays_for
+from handedit.storage import ARRAYS, Unit, open_store, read_ledger, read_records
+from handedit.storage.layout import arrays_for
 
 W, H, T, F = 192, 144, 16, 8
 EMB = "allegro"

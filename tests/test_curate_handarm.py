@@ -7,14 +7,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from flows.config import ClusterConfig, CurateConfig
-from flows.curate import run_curate
+from handedit.flows.config import ClusterConfig, CurateConfig
+from handedit.flows.curate import run_curate
 from handedit.embodiments.kinematics import get_kinematics
 from handedit.embodiments.roster import get_embodiment, resolve_urdf
 from handedit.reasons import Reason
 from handedit.retarget.arm import arm_model
 from handedit.sources.synthetic import make_clip_specs
-from storage import Unit, open_store, read_ledger, read_records
+from handedit.storage import Unit, open_store, read_ledger, read_records
 
 W, H, T, F = 192, 144, 16, 8
 EMB = "xarm_ability"
@@ -81,7 +81,7 @@ def test_hand_arm_track(run):
     assert vb[0]["chosen"] == vb[0]["ranking"][0]
     assert all("reason_name" in c and "critical_success" in c for c in vb[0]["candidates"])
     # the top-3 candidates' egocentric and third-person previews are in the store
-    from storage.store import read_previews
+    from handedit.storage.store import read_previews
 
     pv = read_previews(root, Unit("retarget", clip, embodiment=EMB))
     assert list(pv["candidates"]) == vb[0]["ranking"][:3] and list(pv["frames"]) == [0, T // 2, T - 1]
@@ -96,7 +96,7 @@ def test_hand_arm_track(run):
 
 
 def test_review_choose_rerun_and_previews(run, dask_cluster, tmp_path, capsys):
-    from flows.cli import main
+    from handedit.flows.cli import main
 
     config, _, clip = run
     out_dir = str(config.out)

@@ -16,8 +16,8 @@ import cv2
 import numpy as np
 import pytest
 
-from flows.config import ClusterConfig, CurateConfig
-from flows.curate import run_curate
+from handedit.flows.config import ClusterConfig, CurateConfig
+from handedit.flows.curate import run_curate
 from handedit.models import file_sha256, toy
 from handedit.reasons import Reason
 from handedit.sources import VideoSpec
@@ -25,7 +25,7 @@ from handedit.sources.synthetic import make_clip_specs
 from handedit.vision.harmonize import HarmonizeConfig
 from handedit.vision.restore_background import RestoreConfig
 from handedit.vision.segment import SegmentConfig
-from storage import Unit, open_store, read_ledger, read_records
+from handedit.storage import Unit, open_store, read_ledger, read_records
 
 W, H, T, F, BLANK = 192, 144, 8, 8, 3
 EMB = "allegro"

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from flows.dag import ClipPlan, build_nodes
-from flows.scheduler import run_dag
-from storage import Unit
+from handedit.flows.dag import ClipPlan, build_nodes
+from handedit.flows.scheduler import run_dag
+from handedit.storage import Unit
 
 CLIP = ClipPlan("c", n_frames=20, height=4, width=4, intrinsics={"fx": 1}, source_json="{}", fingerprint="fp",
                 has_object=True, has_gt=False)

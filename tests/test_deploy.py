@@ -9,8 +9,8 @@ import pytest
 import yaml
 from prefect.flows import load_flow_from_entrypoint
 
-from flows.config import ClusterConfig, CurateConfig
-from flows.curate import load_config
+from handedit.flows.config import ClusterConfig, CurateConfig
+from handedit.flows.curate import load_config
 
 REPO = Path(__file__).resolve().parents[1]
 DEPLOY = yaml.safe_load((REPO / "deploy" / "prefect.yaml").read_text())

@@ -245,7 +245,7 @@ def test_hybrid_never_worse_on_cold_frames(assets):
 
 
 def test_cli_retarget_round_trip(assets, tmp_path, capsys):
-    from flows.cli import main
+    from handedit.flows.cli import main
 
     kp, _ = _human_trajectory(n=5)
     kp[2, 8] = np.nan  # a missing joint is allowed
@@ -273,7 +273,7 @@ def test_cli_retarget_round_trip(assets, tmp_path, capsys):
     ("nan", "no finite keypoint"),
 ])
 def test_cli_rejects_malformed_keypoints(assets, tmp_path, capsys, content, message):
-    from flows.cli import main
+    from handedit.flows.cli import main
 
     f = tmp_path / "kp.npy"
     if content == "shape":

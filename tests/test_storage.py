@@ -11,7 +11,7 @@ import xarray as xr
 import zarr
 
 from handedit.reasons import Reason
-from storage import (
+from handedit.storage import (
     ChunkRecord,
     StoreError,
     Unit,
@@ -28,7 +28,7 @@ from storage import (
     write_ledger_table,
     write_records,
 )
-from storage.store import jsonable
+from handedit.storage.store import jsonable
 
 F = 4
 

@@ -17,7 +17,7 @@ def cmd_build(args: argparse.Namespace) -> int:
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
     from handedit.embodiments import EmbodimentError, asset_status, get_embodiment, list_embodiments
     from handedit.render.bank import BankConfig, render_bank_views
-    from storage.bank import BankEntry, write_bank_entry
+    from handedit.storage.bank import BankEntry, write_bank_entry
 
     cfg = BankConfig(views=args.views, width=args.width or args.size, height=args.height or args.size,
                      seed=args.seed, decimate=args.decimate)

@@ -23,8 +23,8 @@ from pathlib import Path
 
 
 def cmd_build(args: argparse.Namespace) -> int:
-    from flows.benchmark import build_testset
-    from storage import StoreError
+    from handedit.flows.benchmark import build_testset
+    from handedit.storage import StoreError
 
     try:
         meta = build_testset(args.store, args.out, args.n, args.embodiment, args.bank, args.seed)
@@ -49,9 +49,9 @@ def _editor(args: argparse.Namespace):
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from flows.benchmark import run_editor
+    from handedit.flows.benchmark import run_editor
     from handedit.benchmark.editors import EditorError
-    from storage.benchmark import BenchIOError
+    from handedit.storage.benchmark import BenchIOError
 
     try:
         summary = run_editor(args.bench, args.name, _editor(args), concurrency=args.concurrency,
@@ -68,11 +68,11 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from flows.benchmark import export_manifest
-    from flows.config import ClusterConfig
-    from flows.evaluate import EvaluateConfig, run_evaluate
+    from handedit.flows.benchmark import export_manifest
+    from handedit.flows.config import ClusterConfig
+    from handedit.flows.evaluate import EvaluateConfig, run_evaluate
     from handedit.metrics.vlm import JudgeConfig
-    from storage.benchmark import BenchDir
+    from handedit.storage.benchmark import BenchDir
 
     if args.manifest:
         manifest, out = Path(args.manifest), Path(args.out or Path(args.manifest).with_suffix(""))
@@ -100,15 +100,15 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from flows.benchmark import export_manifest
+    from handedit.flows.benchmark import export_manifest
 
     print(export_manifest(args.bench, args.name, args.out))
     return 0
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from flows.benchmark import write_report
-    from storage.benchmark import BenchIOError
+    from handedit.flows.benchmark import write_report
+    from handedit.storage.benchmark import BenchIOError
 
     try:
         written = write_report(args.bench, args.name)

@@ -23,7 +23,7 @@ REVIEWS_ATTR = "reviews"
 
 
 def _summaries(root, clip: str | None = None, emb: str | None = None) -> dict[tuple[str, str], dict]:
-    from storage import Unit, read_records
+    from handedit.storage import Unit, read_records
 
     out = {}
     for c in sorted((root.attrs.get("clips") or {})):
@@ -47,10 +47,10 @@ def _fmt(c: dict) -> str:
 
 
 def cmd_review(args: argparse.Namespace) -> int:
-    from flows.cli import store_path
-    from storage import Unit, open_store
-    from storage.provenance import PROVENANCE_ATTR
-    from storage.store import now_iso, set_attrs
+    from handedit.flows.cli import store_path
+    from handedit.storage import Unit, open_store
+    from handedit.storage.provenance import PROVENANCE_ATTR
+    from handedit.storage.store import now_iso, set_attrs
 
     path = store_path(args.dir)
     if not path.exists():
@@ -102,8 +102,8 @@ def _write_previews(root, args, found) -> int:
     import cv2
     import numpy as np
 
-    from storage import Unit
-    from storage.store import read_previews
+    from handedit.storage import Unit
+    from handedit.storage.store import read_previews
 
     (c, e), vb = next(iter(found.items()))
     pv = read_previews(root, Unit("retarget", c, embodiment=e))
