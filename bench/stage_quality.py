@@ -51,15 +51,16 @@ def measure_clip(spec) -> dict:
     src = spec.open()
     info, c = src.info(), src.read(0, spec.n_frames)
     seg = segment(c.frames, project(c.keypoints, info.intrinsics), c.keypoints_valid)
+    seg_hand, seg_arm = seg.union  # one hand: the union is that hand
     gh, ga, gbg = c.gt["hand_mask"], c.gt["handarm_mask"], c.gt["background"]
     n = len(c.frames)
     out = {
-        "hand_iou": [q.iou(a, b) for a, b in zip(seg.hand_mask, gh)],
-        "handarm_iou": [q.iou(a, b) for a, b in zip(seg.handarm_mask, ga)],
+        "hand_iou": [q.iou(a, b) for a, b in zip(seg_hand, gh)],
+        "handarm_iou": [q.iou(a, b) for a, b in zip(seg_arm, ga)],
         "seg_ok": float((seg.status == 1).mean()),
     }
     targets = np.arange(n)
-    for tag, masks in (("pred", seg.handarm_mask), ("gt", ga)):
+    for tag, masks in (("pred", seg_arm), ("gt", ga)):
         res = restore_background(c.frames, masks, targets)
         out[f"psnr_{tag}"] = [q.psnr_in(res.background[i], gbg[i], ga[i]) for i in range(n)]
         out[f"ssim_{tag}"] = [q.ssim_in(res.background[i], gbg[i], ga[i]) for i in range(n)]
@@ -72,9 +73,9 @@ def measure_clip(spec) -> dict:
     on_restored = composite(restored, rgba, depth).image
     on_true = composite(gbg, rgba, depth)
     out["boundary_err"] = [q.boundary_error(a, b, m) for a, b, m in zip(on_restored, on_true.image, gh)]
-    harm = harmonize(on_true.image, on_true.robot_mask)
-    before = [q.lab_gap(im, m) for im, m in zip(on_true.image, on_true.robot_mask)]
-    after = [q.lab_gap(im, m) for im, m in zip(harm.image, on_true.robot_mask)]
+    harm = harmonize(on_true.image, on_true.union)
+    before = [q.lab_gap(im, m) for im, m in zip(on_true.image, on_true.union)]
+    after = [q.lab_gap(im, m) for im, m in zip(harm.image, on_true.union)]
     out["lab_before"], out["lab_after"] = before, after
     return out
 
@@ -92,11 +93,12 @@ def contact_sheet(path: Path, out: Path, times=(0.1, 0.35, 0.6, 0.85), width=640
         h = int(round(raw.shape[1] * width / raw.shape[2]))
         frames = np.stack([cv2.resize(f, (width, h), interpolation=cv2.INTER_AREA) for f in raw])
         seg = segment(frames, None, None)
+        hand, arm = seg.union
         k = t - lo
-        res = restore_background(frames, seg.handarm_mask, np.array([k]))
+        res = restore_background(frames, arm, np.array([k]))
         f = frames[k]
         ov = f.astype(np.float32)
-        a, hm = seg.handarm_mask[k], seg.hand_mask[k]
+        a, hm = arm[k], hand[k]
         ov[a] = 0.5 * ov[a] + 0.5 * np.array([40, 80, 255])
         ov[hm] = 0.5 * f[hm] + 0.5 * np.array([255, 40, 40])
         row = np.hstack([f, ov.astype(np.uint8), res.background[0]])

@@ -64,7 +64,7 @@ def samples(root: zarr.Group, per_unit: int = 3) -> str:
         cells = []
         for t in picks:
             overlay = src[t].copy()
-            m = mask[t]
+            m = mask[t].any(0)  # every hand's robot
             overlay[m] = (0.5 * overlay[m] + 0.5 * np.array([0, 160, 255])).astype(np.uint8)
             cells.append(f"<div class=trip><b>frame {t}</b><br>{_png(src[t])}{_png(root[unit.path]['image'][t])}{_png(overlay)}</div>")
         out.append(f"<h3>{html.escape(unit.clip)} &times; {html.escape(unit.embodiment or '')}</h3>" + "".join(cells))

@@ -43,6 +43,11 @@ def _kept(root, clip: str, emb: str) -> np.ndarray | None:
     return root[unit.path]["status"][:] == Reason.OK
 
 
+def _replaced(root, clip: str, emb: str, frame: int) -> np.ndarray:
+    """(S,) hands of a kept frame whose robot replaced them (QC ``hand_status`` OK)."""
+    return root[Unit("qc", clip, embodiment=emb).path]["hand_status"][frame] == Reason.OK
+
+
 def build_testset(store: str | Path, bench: str | Path, n_sources: int = 1000, embodiments: list[str] | None = None,
                   bank: str | Path | None = None, seed: int = 0, tracks: tuple[str, ...] = ("hand", "hand_arm")) -> dict:
     """Write the two tracks' items (N source frames x the track's embodiments) and the manifest.
@@ -68,7 +73,7 @@ def build_testset(store: str | Path, bench: str | Path, n_sources: int = 1000, e
         for sf in select_frames(kept, n_sources, seed):
             src_grp = root[Unit("ingest", sf.clip).path]
             src = src_grp["frames"][sf.frame]
-            human = root[Unit("segment", sf.clip).path][SCOPE_MASK[scope]][sf.frame]
+            humans = root[Unit("segment", sf.clip).path][SCOPE_MASK[scope]][sf.frame]  # (S,H,W) per hand
             obj = src_grp["object_mask"][sf.frame] if "object_mask" in src_grp else None
             for emb in embs:
                 if not kept[sf.clip].get(emb, np.zeros(0, bool))[sf.frame:sf.frame + 1].any():
@@ -76,7 +81,9 @@ def build_testset(store: str | Path, bench: str | Path, n_sources: int = 1000, e
                 e = get_embodiment(emb)
                 iid = item_id(scope, sf.clip, sf.frame, emb)
                 gt = root[Unit("harmonize", sf.clip, embodiment=emb).path]["image"][sf.frame]
-                robot = root[Unit("composite", sf.clip, embodiment=emb).path]["robot_mask"][sf.frame]
+                robots = root[Unit("composite", sf.clip, embodiment=emb).path]["robot_mask"][sf.frame]
+                replaced = _replaced(root, sf.clip, emb, sf.frame)
+                human, robot = humans[replaced].any(0), robots[replaced].any(0)
                 write_image(out.item_file(iid, "src"), src)
                 write_image(out.item_file(iid, "gt"), gt)
                 write_image(out.item_file(iid, "human_mask"), human)

@@ -2,6 +2,7 @@
 
     handedit curate --demo --out runs/demo        synthetic clips, local Dask cluster
     handedit curate --video clip.mp4 [--keypoints kp.npz] --out DIR
+    handedit curate --source egodex --root DIR [--task T] [--max-clips N] [--frames A:B] --out DIR
     handedit curate --config run.yaml              a full CurateConfig (deployments use this)
     handedit ledger DIR                            the rejection ledger as a table
     handedit status DIR                            frames per stage and status
@@ -51,21 +52,59 @@ def _build_config(args: argparse.Namespace):
     if not args.out:
         raise SystemExit("handedit curate: --out DIR is required (or --config FILE with an 'out' field)")
     clips: list = []
+    sources: list = []
+    resize = _size(args.resize) if args.resize else None
+    window = ":" in str(args.frames)
     if args.demo:
-        clips += make_clip_specs(args.clips, seed=args.seed, n_frames=args.frames, width=args.width, height=args.height)
+        n = 48 if window else _count(args.frames)
+        clips += make_clip_specs(args.clips, seed=args.seed, n_frames=n, width=args.width, height=args.height)
     for video in args.video or []:
         clips.append(VideoSpec(path=Path(video), keypoints_path=Path(args.keypoints) if args.keypoints else None,
-                               max_frames=args.max_frames))
-    if not clips:
-        raise SystemExit("handedit curate: give --demo, --video FILE or --config FILE")
+                               max_frames=args.max_frames, resize=resize))
+    if args.source:
+        from handedit.sources import TREES
+
+        if not args.root:
+            raise SystemExit(f"handedit curate: --source {args.source} needs --root DIR (the dataset's top folder)")
+        sources.append(TREES[args.source](root=Path(args.root), tasks=args.task or [], max_clips=args.max_clips,
+                                          frames=_window(args.frames) if window else None, resize=resize))
+    if not clips and not sources:
+        raise SystemExit("handedit curate: give --demo, --video FILE, --source NAME --root DIR or --config FILE")
     cluster = ClusterConfig(address=args.address, n_workers=args.workers)
     if args.cluster:
         import yaml
 
         spec = yaml.safe_load(Path(args.cluster).read_text()) or {}
         cluster = ClusterConfig.model_validate(spec.get("cluster", spec))
-    return CurateConfig(out=store_path(args.out), clips=clips, embodiments=args.embodiment or ["allegro"],
-                        frames_per_chunk=args.frames_per_chunk, cluster=cluster)
+    extra = {"qc": {"keep": args.keep}} if args.keep else {}
+    return CurateConfig(out=store_path(args.out), clips=clips, sources=sources, embodiments=args.embodiment or ["allegro"],
+                        frames_per_chunk=args.frames_per_chunk, cluster=cluster, **extra)
+
+
+def _count(text: str) -> int:
+    try:
+        n = int(text)
+        assert n >= 1
+    except (ValueError, AssertionError):
+        raise SystemExit(f"handedit curate: --frames {text!r}: use a frame count N >= 1 or a window A:B") from None
+    return n
+
+
+def _window(text: str) -> tuple[int, int]:
+    from handedit.sources.egodex import parse_frames
+
+    try:
+        return parse_frames(text)
+    except ValueError as exc:
+        raise SystemExit(f"handedit curate: {exc}") from None
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise SystemExit(f"handedit curate: --resize {text!r}: use WIDTHxHEIGHT, e.g. 960x540") from None
+    return w, h
 
 
 def cmd_curate(args: argparse.Namespace) -> int:
@@ -78,7 +117,8 @@ def cmd_curate(args: argparse.Namespace) -> int:
     except (ValidationError, ValueError) as exc:
         print(f"handedit curate: invalid configuration:\n{exc}", file=sys.stderr)
         return 2
-    print(f"curating {len(config.clips)} clip(s) x {len(config.embodiments)} embodiment(s) into {config.out}")
+    n_clips = len(config.clips) + sum(len(t.clips()) for t in config.sources)
+    print(f"curating {n_clips} clip(s) x {len(config.embodiments)} embodiment(s) into {config.out}")
     where = config.cluster.address or f"a local Dask cluster ({config.cluster.n_workers} worker processes)"
     print(f"running on {where}; the Dask dashboard link follows when the cluster is up")
     from handedit.storage import StoreError
@@ -141,7 +181,12 @@ def cmd_status(args: argparse.Namespace) -> int:
     from handedit.storage import status_counts
 
     root = _open(args)
-    print(status_counts(root).to_string(index=False))
+    if args.json:
+        from handedit.storage.summary import run_summary
+
+        print(json.dumps(run_summary(root, str(store_path(args.store))), indent=1))
+        return 0
+    print(status_counts(root, by_side=True).fillna("-").to_string(index=False))
     runs = root.attrs.get("runs") or []
     if runs:
         print("\nlast run:", json.dumps(runs[-1]["stages"]))
@@ -171,9 +216,20 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("--video", action="append", help="a video file (repeatable)")
     c.add_argument("--keypoints", help="keypoints .npy/.npz for --video (MANO order, camera frame, metres)")
     c.add_argument("--max-frames", type=int, default=None)
+    from handedit.sources import TREES
+
+    c.add_argument("--source", choices=sorted(TREES), help="a dataset tree (with --root)")
+    c.add_argument("--root", help="the dataset's top folder, e.g. ../shared/data/egodex")
+    c.add_argument("--task", action="append", help="only this task folder (repeatable)")
+    c.add_argument("--max-clips", type=int, default=None, help="at most this many clips of the tree")
+    c.add_argument("--resize", help="working resolution WIDTHxHEIGHT (intrinsics scaled), e.g. 960x540")
+    c.add_argument("--keep", choices=["all_hands", "per_hand"], help="bimanual frames: keep only if every hand was "
+                   "replaced (all_hands, default) or any (per_hand)")
     c.add_argument("--embodiment", action="append", help="embodiment id (repeatable; default allegro)")
     c.add_argument("--clips", type=int, default=2, help="number of synthetic clips with --demo")
-    c.add_argument("--frames", type=int, default=48, help="frames per synthetic clip")
+    c.add_argument("--frames", default="48", metavar="N|A:B",
+                   help="N: frames per synthetic clip (--demo, default 48); A:B: a window of every clip of --source, "
+                        "frames A (inclusive) to B (exclusive)")
     c.add_argument("--width", type=int, default=640)
     c.add_argument("--height", type=int, default=480)
     c.add_argument("--seed", type=int, default=0)
@@ -191,6 +247,7 @@ def parser() -> argparse.ArgumentParser:
 
     st = sub.add_parser("status", help="frames per stage and status")
     st.add_argument("store")
+    st.add_argument("--json", action="store_true", help="the run as one JSON object (schema: handedit.storage.summary)")
     st.set_defaults(func=cmd_status)
 
     db = sub.add_parser("dashboard", help="write the release/QA page (HTML) of a store")

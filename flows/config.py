@@ -17,7 +17,8 @@ from handedit.embodiments import get_embodiment
 from handedit.qc import QCConfig
 from handedit.render.stage import RenderConfig
 from handedit.retarget import RetargetConfig
-from handedit.sources import SourceSpec
+from handedit.sources import SourceSpec, TreeSpec
+from handedit.vision.registration import RegistrationConfig
 from handedit.vision.composite import CompositeConfig
 from handedit.vision.harmonize import HarmonizeConfig
 from handedit.vision.restore_background import RestoreConfig
@@ -76,9 +77,11 @@ class ClusterConfig(BaseModel):
 
 class CurateConfig(BaseModel):
     out: Path = Field(description="the store, e.g. runs/demo/handedit.zarr")
-    clips: list[SourceSpec]
+    clips: list[SourceSpec] = Field(default_factory=list, description="explicit clips")
+    sources: list[TreeSpec] = Field(default_factory=list, description="dataset trees, e.g. {kind: egodex, root: DIR}")
     embodiments: list[str] = ["allegro"]
     frames_per_chunk: int = Field(16, ge=1, description="frames per task and per chunk; fixed per store")
+    registration: RegistrationConfig = RegistrationConfig()
     segment: SegmentConfig = SegmentConfig()
     restore_background: RestoreConfig = RestoreConfig()
     retarget: RetargetConfig = RetargetConfig()
@@ -103,6 +106,10 @@ class CurateConfig(BaseModel):
         if len(set(ids)) != len(ids):
             raise ValueError(f"embodiments listed twice: {ids}")
         return ids
+
+    def all_clips(self) -> list:
+        """Explicit clips, then every clip of every source tree, in listing order."""
+        return [*self.clips, *(c for tree in self.sources for c in tree.clips())]
 
     def stage_config(self, stage: str) -> BaseModel:
         return IngestConfig() if stage == "ingest" else getattr(self, stage)

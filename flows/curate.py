@@ -62,11 +62,11 @@ class EmbodimentPlan:
 def plan_clips(config: CurateConfig) -> tuple[list[ClipPlan], dict[str, str]]:
     """Open each source on the driver (metadata only); a bad source is a clip-level rejection."""
     plans, errors = [], {}
-    for spec in config.clips:
+    for spec in config.all_clips():
         try:
             info = open_source(spec).info()
         except SourceError as exc:
-            errors[spec.clip_id or Path(spec.path).stem] = str(exc)
+            errors[spec.id] = str(exc)
             continue
         plans.append(
             ClipPlan(
@@ -80,6 +80,11 @@ def plan_clips(config: CurateConfig) -> tuple[list[ClipPlan], dict[str, str]]:
                 has_object=info.has_object,
                 has_gt=bool(info.ground_truth),
                 info=jsonable({**vars(info), "intrinsics": info.intrinsics.to_dict()}),
+                hands=tuple(info.hands),
+                has_arm=info.has_arm,
+                has_keypoints=info.has_keypoints,
+                world=info.world,
+                keypoints_exact=info.keypoints_exact,
             )
         )
     ids = [p.clip for p in plans]
@@ -104,19 +109,22 @@ def plan_embodiments(ids: list[str]) -> list[EmbodimentPlan]:
 
 
 def _create_units(root, config: CurateConfig, clip: ClipPlan, embs: list[EmbodimentPlan]) -> None:
-    f, sizes = config.frames_per_chunk, {"H": clip.height, "W": clip.width}
+    f, sizes = config.frames_per_chunk, {"H": clip.height, "W": clip.width, "S": len(clip.hands)}
+    hands = {"hands": list(clip.hands)}
     create_unit(root, Unit("ingest", clip.clip), clip.n_frames, sizes, f, clip.has_object, clip.has_gt,
-                attrs={"info": clip.info})
-    create_unit(root, Unit("segment", clip.clip), clip.n_frames, sizes, f)
+                attrs={"info": clip.info, **hands}, has_arm=clip.has_arm)
+    create_unit(root, Unit("registration", clip.clip), clip.n_frames, sizes, f, attrs=hands, has_arm=clip.has_arm)
+    create_unit(root, Unit("segment", clip.clip), clip.n_frames, sizes, f, attrs=hands)
     for scope in sorted({e.scope for e in embs}):
         create_unit(root, Unit("restore_background", clip.clip, scope=scope), clip.n_frames, sizes, f)
     for emb in embs:
         for stage in ("retarget", "render", "composite", "harmonize", "qc"):
-            extra = {"joint_names": emb.joint_names} if stage == "retarget" else None
+            extra = {**hands, **({"joint_names": emb.joint_names} if stage == "retarget" else {})}
             create_unit(root, Unit(stage, clip.clip, embodiment=emb.id), clip.n_frames,
                         {**sizes, "dof": len(emb.joint_names)}, f, attrs=extra)
         if emb.scope == "hand_arm":
-            create_previews(root, Unit("retarget", clip.clip, embodiment=emb.id), clip.height, clip.width)
+            for side in clip.hands:
+                create_previews(root, Unit("retarget", clip.clip, embodiment=emb.id), clip.height, clip.width, side)
 
 
 def stage_version_params(config: CurateConfig, stage: str) -> tuple[int, dict]:

@@ -1,7 +1,8 @@
 """The curate DAG at chunk granularity: which chunk of which stage reads what.
 
-Stages: ingest -> segment -> restore_background (per scope) and, per embodiment,
-retarget -> render -> composite -> harmonize -> qc. A node is one (unit, chunk); its
+Stages: ingest -> registration -> segment -> restore_background (per scope) and, per
+embodiment, retarget -> render -> composite -> harmonize -> qc. Every per-hand stage
+handles all of a clip's hands in one node (its arrays have a hand axis). A node is one (unit, chunk); its
 dependencies name the exact arrays it reads, so its provenance key fingerprints exactly
 its inputs. restore_background reads a window of neighbouring chunks.
 """
@@ -10,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from handedit.storage.layout import SCOPE_MASK, Unit, chunk_ranges
+from handedit.storage.layout import PER_HAND_STAGES, SCOPE_MASK, Unit, chunk_ranges
 from handedit.storage.store import dumps
 
 NodeId = tuple[Unit, int]
@@ -50,6 +51,11 @@ class ClipPlan:
     has_object: bool
     has_gt: bool
     info: dict = field(default_factory=dict, compare=False)  # the source's ClipInfo, JSON-safe
+    hands: tuple[str, ...] = ("right",)
+    has_arm: bool = False
+    has_keypoints: bool = True
+    world: dict | None = field(default=None, compare=False)
+    keypoints_exact: bool = False
 
 
 def build_nodes(
@@ -61,14 +67,19 @@ def build_nodes(
     """All nodes for one clip; ``embodiments`` maps embodiment id -> scope (its track)."""
     c = clip.clip
     ranges = chunk_ranges(clip.n_frames, frames_per_chunk)
-    base_ctx = {"intrinsics": clip.intrinsics, "has_object": clip.has_object}
+    base_ctx = {"intrinsics": clip.intrinsics, "has_object": clip.has_object, "hands": list(clip.hands),
+                "has_arm": clip.has_arm, "has_keypoints": clip.has_keypoints, "keypoints_exact": clip.keypoints_exact}
     camera = {"intrinsics": dumps(clip.intrinsics)}
-    ingest, segment = Unit("ingest", c), Unit("segment", c)
+    ingest, registration, segment = Unit("ingest", c), Unit("registration", c), Unit("segment", c)
+    arm = ("arm_keypoints", "arm_valid") if clip.has_arm else ()
+    reg_out = ("keypoints", "keypoints_valid", "hand_status", "status")
     nodes: list[Node] = []
     for k, (s, e) in enumerate(ranges):
-        ingest_ctx = {"source": clip.source_json, "has_object": clip.has_object, "has_gt": clip.has_gt}
+        ingest_ctx = {"source": clip.source_json, "has_object": clip.has_object, "has_gt": clip.has_gt, "has_arm": clip.has_arm}
         nodes.append(Node(ingest, k, s, e, [], ingest_ctx, {"source": clip.fingerprint}))
-        seg_deps = [Dep(ingest, k, ("frames", "keypoints", "keypoints_valid", "status"))]
+        reg_deps = [Dep(ingest, k, ("frames", "keypoints", "keypoints_valid", "status", *arm))]
+        nodes.append(Node(registration, k, s, e, reg_deps, base_ctx, camera))
+        seg_deps = [Dep(ingest, k, ("frames", "status")), Dep(registration, k, (*reg_out, *arm[:1]))]
         nodes.append(Node(segment, k, s, e, seg_deps, base_ctx, camera))
     for scope in sorted(set(embodiments.values())):
         restore = Unit("restore_background", c, scope=scope)
@@ -83,41 +94,55 @@ def build_nodes(
         ret, ren, comp, harm, qc = (Unit(st, c, embodiment=emb) for st in ("retarget", "render", "composite", "harmonize", "qc"))
         seq = scope == "hand_arm"  # the virtual base is fixed per sequence: one retarget node per clip
         if seq:
-            nodes.append(Node(ret, 0, 0, clip.n_frames, *_hand_arm_retarget(ingest, ranges, base_ctx, clip)))
+            nodes.append(Node(ret, 0, 0, clip.n_frames, *_hand_arm_retarget(ingest, registration, segment, ranges, base_ctx, clip)))
         for k, (s, e) in enumerate(ranges):
             rk = 0 if seq else k  # the retarget node a chunk reads
-            comp_deps = [Dep(restore, k, ("background", "status")), Dep(ren, k, ("rgba", "depth", "status"))]
+            comp_deps = [Dep(restore, k, ("background", "status")),
+                         Dep(ren, k, ("rgba", "depth", "robot_side", "hand_status", "status")),
+                         Dep(segment, k, (SCOPE_MASK[scope], "hand_status")), Dep(ingest, k, ("frames",)),
+                         Dep(registration, k, ("keypoints", "keypoints_valid"))]
             comp_ctx = {**base_ctx, "scope": scope}
             if clip.has_object:  # object mask + pose, and the source for its mesh (depth occlusion)
                 comp_deps.append(Dep(ingest, k, ("object_mask", "object_pose")))
                 comp_ctx["source"] = clip.source_json
-            upstream = [(ingest, k), (segment, k), (restore, k), (ret, rk), (ren, k), (comp, k), (harm, k)]
+            upstream = [(ingest, k), (registration, k), (segment, k), (restore, k), (ret, rk), (ren, k), (comp, k), (harm, k)]
             if not seq:
-                nodes.append(Node(ret, k, s, e, *_hand_retarget(ingest, k, base_ctx, clip)))
+                nodes.append(Node(ret, k, s, e, *_hand_retarget(ingest, registration, segment, k, base_ctx, clip)))
             nodes += [
-                Node(ren, k, s, e, [Dep(ret, rk, ("qpos", "root_pose", "status"))], base_ctx, camera),
+                Node(ren, k, s, e, [Dep(ret, rk, ("qpos", "root_pose", "hand_status", "status"))], base_ctx, camera),
                 Node(comp, k, s, e, comp_deps, comp_ctx),
                 Node(harm, k, s, e, [Dep(comp, k, ("image", "robot_mask", "status"))], base_ctx),
-                Node(qc, k, s, e, [Dep(u, j, ("status",)) for u, j in upstream],
-                     {"upstream": [{"stage": u.stage, "clip": u.clip, "scope": u.scope, "embodiment": u.embodiment}
+                Node(qc, k, s, e, [Dep(u, j, ("status", *(("hand_status",) if u.stage in PER_HAND_STAGES else ())))
+                                   for u, j in upstream],
+                     {"hands": list(clip.hands),
+                      "upstream": [{"stage": u.stage, "clip": u.clip, "scope": u.scope, "embodiment": u.embodiment}
                                    for u, _ in upstream]}),
             ]
     return nodes
 
 
-def _hand_retarget(ingest: Unit, k: int, ctx: dict, clip: ClipPlan) -> tuple[list[Dep], dict]:
-    """Hand-only: one node per chunk on the chunk's keypoints; with an object, its pose
-    (and the source, for its mesh) feed the contact/penetration QC."""
+_REG = ("keypoints", "keypoints_valid", "hand_status", "status")
+
+
+def _hand_retarget(ingest: Unit, registration: Unit, segment: Unit, k: int, ctx: dict, clip: ClipPlan) -> tuple[list[Dep], dict]:
+    """Hand-only: one node per chunk on the chunk's registered keypoints; with an object,
+    its pose (and the source, for its mesh) feed the contact/penetration QC."""
     obj = ("object_pose",) if clip.has_object else ()
     ctx = {**ctx, "source": clip.source_json} if clip.has_object else ctx
-    return [Dep(ingest, k, ("keypoints", "keypoints_valid", "status", *obj))], ctx
+    deps = [Dep(ingest, k, ("status", *obj)), Dep(registration, k, _REG), Dep(segment, k, ("hand_status",))]
+    return deps, ctx
 
 
-def _hand_arm_retarget(ingest: Unit, ranges: list[tuple[int, int]], ctx: dict, clip: ClipPlan) -> tuple[list[Dep], dict]:
+def _hand_arm_retarget(ingest: Unit, registration: Unit, segment: Unit, ranges: list[tuple[int, int]], ctx: dict,
+                       clip: ClipPlan) -> tuple[list[Dep], dict]:
     """Hand-arm: one node for the whole clip. The virtual-base search scores every
     candidate over the sequence, so it runs once and writes all of the unit's frames (the
     unit's only writer); render chunks then read their frames of it."""
     obj = ("object_pose",) if clip.has_object else ()
+    arm = ("arm_valid",) if clip.has_arm else ()
     ctx = {**ctx, "source": clip.source_json} if clip.has_object else ctx
-    deps = [Dep(ingest, j, ("keypoints", "keypoints_valid", "world_from_camera", "status", *obj)) for j in range(len(ranges))]
-    return deps, {**ctx, "track": "hand_arm", "clip_frames": [0, ranges[-1][1]]}
+    deps = []
+    for j in range(len(ranges)):
+        deps += [Dep(ingest, j, ("world_from_camera", "status", *obj, *arm)),
+                 Dep(registration, j, (*_REG, *(("arm_keypoints",) if clip.has_arm else ()))), Dep(segment, j, ("hand_status",))]
+    return deps, {**ctx, "track": "hand_arm", "clip_frames": [0, ranges[-1][1]], "world": clip.world}

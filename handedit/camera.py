@@ -36,6 +36,13 @@ class Intrinsics:
         f = 0.5 * width / np.tan(np.deg2rad(hfov_deg) / 2.0)
         return cls(float(f), float(f), width / 2.0, height / 2.0, int(width), int(height))
 
+    def scaled(self, width: int, height: int) -> "Intrinsics":
+        """The same camera for an image resized to (width, height): pixel centres map
+        consistently (u' + 0.5 = (u + 0.5) * sx), so projected points land on the same content."""
+        sx, sy = width / self.width, height / self.height
+        return Intrinsics(self.fx * sx, self.fy * sy, (self.cx + 0.5) * sx - 0.5, (self.cy + 0.5) * sy - 0.5,
+                          int(width), int(height))
+
     def to_dict(self) -> dict:
         return {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "width": self.width, "height": self.height}
 

@@ -1,7 +1,10 @@
-"""The MANO 21-joint order, documented once for the whole project.
+"""The MANO 21-joint order and the hand sides, documented once for the whole project.
 
 Every keypoint array in handedit is (..., 21, 3) in this order, in metres, in the
-OpenCV camera frame (x right, y down, z forward) unless a name says otherwise.
+OpenCV camera frame (x right, y down, z forward) unless a name says otherwise. A clip
+tracks one or more hands: its arrays carry a ``hand`` axis before the joint axis, in
+the order of ``ClipInfo.hands`` (``SIDES`` order: left before right), e.g. keypoints
+(T, S, 21, 3) with S = 2 for EgoDex and S = 1 for a one-hand source.
 
     0  wrist
     1  thumb_cmc    2  thumb_mcp    3  thumb_ip     4  thumb_tip
@@ -38,5 +41,15 @@ FINGERS: dict[str, tuple[int, ...]] = {
     "ring": (13, 14, 15, 16),
     "pinky": (17, 18, 19, 20),
 }
+SIDES: tuple[str, ...] = ("left", "right")
+
+# Arm joints beyond the hand, per side, where a source tracks them (EgoDex does):
+#   elbow     EgoDex "Forearm" (0.27 m from the wrist)
+#   shoulder  EgoDex "Arm", the shoulder joint (0.31 m further; left and right 0.36 m apart)
+#   clavicle  EgoDex "Shoulder", the clavicle's inner end (0.16 m further, near the neck)
+# segment reads the elbow (forearm direction), the virtual-base search the shoulders.
+ARM_JOINTS: tuple[str, ...] = ("elbow", "shoulder", "clavicle")
+ELBOW, SHOULDER = 0, 1
+
 # Parent of each joint in the kinematic tree (wrist is the root).
 PARENT: tuple[int, ...] = (-1, 0, 1, 2, 3, 0, 5, 6, 7, 0, 9, 10, 11, 0, 13, 14, 15, 0, 17, 18, 19)

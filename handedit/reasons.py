@@ -2,8 +2,9 @@
 
 Every stage writes a ``status`` array (int16, one value per frame). ``PENDING`` means
 the stage has not produced this frame, ``OK`` that it has, ``UPSTREAM`` that an earlier
-stage rejected the frame (the ledger names that earlier cause only once), and every
-code >= 100 is a rejection whose cause the ledger records with a detail string.
+stage rejected the frame (the ledger names that earlier cause only once), ``ABSENT``
+(per side only) that this hand is not in view, and every code >= 100 is a rejection
+whose cause the ledger records with a detail string.
 
 The hundreds group codes by stage family, following the paper's quality-control table.
 """
@@ -19,6 +20,7 @@ class Reason(IntEnum):
     PENDING = 0
     OK = 1
     UPSTREAM = 2  # an earlier stage rejected this frame
+    ABSENT = 3  # per side: this hand is not in view (nothing to replace); never a rejection
 
     # 1xx: input / source
     NO_KEYPOINTS = 101  # the source has no (valid) hand keypoints for this frame
@@ -48,6 +50,7 @@ class Reason(IntEnum):
     REVIEW_DROPPED = 506
     # 6xx: render / composite / harmonize
     EMPTY_RENDER = 601  # the robot is not visible in the image
+    HUMAN_VISIBLE = 602  # human-hand pixels remain visible beside the robot in the composite
     # 9xx: infrastructure
     STAGE_ERROR = 901  # the stage raised after its retries; detail holds the error
     ASSETS_MISSING = 902  # embodiment assets could not be resolved
@@ -71,6 +74,28 @@ def gate(*upstream: np.ndarray) -> np.ndarray:
     for s in upstream:
         ok &= np.asarray(s) == Reason.OK
     return ok
+
+
+def per_frame(hand_status: np.ndarray) -> np.ndarray:
+    """Frame-level status of a per-hand stage from its (n,S) ``hand_status``: OK where any
+    hand is OK; else the first hand's rejection; else UPSTREAM (no hand had anything)."""
+    hs = np.asarray(hand_status)
+    out = np.full(hs.shape[0], int(Reason.UPSTREAM), STATUS_DTYPE)
+    rejected = hs >= 100
+    first = np.argmax(rejected, axis=1)
+    has = rejected.any(axis=1)
+    out[has] = hs[np.flatnonzero(has), first[has]]
+    out[(hs == Reason.OK).any(axis=1)] = Reason.OK
+    return out
+
+
+def combine_hands(own: np.ndarray, ready: np.ndarray) -> np.ndarray:
+    """Per-hand ``combine``: (n,S) own codes where ``ready`` (n,S); ABSENT stays ABSENT."""
+    own = np.asarray(own, dtype=STATUS_DTYPE)
+    ready = np.asarray(ready, bool)
+    out = own.copy()
+    out[~ready & (own != Reason.ABSENT)] = Reason.UPSTREAM
+    return out
 
 
 def combine(own: np.ndarray, ready: np.ndarray) -> np.ndarray:

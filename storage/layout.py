@@ -3,14 +3,24 @@
 Nothing else in the project builds a store path by hand. The tree is::
 
     <store>.zarr/                         attrs: schema, frames_per_chunk, clips, runs
-      clips/<clip>/source/                ingest: frames, camera, keypoints, object, gt_*
-      clips/<clip>/segment/               hand_mask, handarm_mask, confidence
+      clips/<clip>/source/                ingest: frames, camera, keypoints (per hand), arm joints, object, gt_*
+      clips/<clip>/registration/        keypoints registered to the pixels, offset_px, scale
+      clips/<clip>/segment/               hand_mask, handarm_mask (per hand), confidence
       clips/<clip>/restore_background/<scope>/   background (scope = hand | hand_arm)
       clips/<clip>/embodiments/<emb>/<stage>/    retarget, render, composite, harmonize, qc
       ledger/                             the rejection ledger as table columns
 
 Every stage group ("unit") holds a ``status`` array (one int16 per frame, codes in
 ``handedit.reasons``) and, in its attributes, a provenance record per chunk.
+
+Hands: per-hand arrays have a ``hand`` axis after ``frame`` (size S, in the order of the
+source's ``hands`` attribute, e.g. left, right). Stages that work per hand (registration,
+segment, retarget, render, composite, qc) also write ``hand_status`` (frame, hand): OK,
+ABSENT (not in view), UPSTREAM or the side's own rejection; their frame-level ``status``
+is OK when at least one side is OK (see ``handedit.reasons.per_frame``). Why an axis and
+not per-side groups: the sides of a frame are decided together (two hands in one GrabCut
+so neither swallows the other, two robots in one depth test, one keep decision), so one
+task and one writer own both.
 
 Chunking enforces one writer per chunk: a task always covers whole chunks of
 ``frames_per_chunk`` (F) frames. Image arrays store one frame per inner chunk, F frames
@@ -29,6 +39,7 @@ SCOPES = ("hand", "hand_arm")
 # Stage -> level: which address fields identify one unit of that stage.
 STAGE_LEVEL: dict[str, str] = {
     "ingest": "clip",
+    "registration": "clip",
     "segment": "clip",
     "restore_background": "scope",
     "retarget": "embodiment",
@@ -89,17 +100,17 @@ def clip_path(clip: str) -> str:
 LEDGER_PATH = "ledger"
 
 # Review previews of a hand-arm sequence's top virtual-base candidates: a sequence-level
-# group inside its retarget unit (not per frame), written by the one retarget task.
-#   <retarget unit>/previews/ego, third   (K, P, H, W, 4) uint8   K candidates x P frames
-#   <retarget unit>/previews/candidates   (K,) int16 (-1: none)   frames (P,) int32
+# group per hand inside its retarget unit (not per frame), written by the one retarget task.
+#   <retarget unit>/previews/<side>/ego, third   (K, P, H, W, 4) uint8   K candidates x P frames
+#   <retarget unit>/previews/<side>/candidates   (K,) int16 (-1: none)   frames (P,) int32
 PREVIEW_CANDIDATES = 3
 PREVIEW_FRAMES = 3
 
 
-def preview_path(unit: Unit) -> str:
+def preview_path(unit: Unit, side: str) -> str:
     if unit.stage != "retarget" or unit.embodiment is None:
         raise ValueError(f"previews belong to a hand-arm retarget unit, not {unit.label}")
-    return f"{unit.path}/previews"
+    return f"{unit.path}/previews/{safe_name('side', side)}"
 
 
 @dataclass(frozen=True)
@@ -111,7 +122,7 @@ class ArraySpec:
     dtype: str
     dims: tuple[str, ...]  # dimension names after 'frame' (xarray needs them)
     image: bool = False  # compressed with Blosc zstd+bitshuffle, 1 frame per inner chunk
-    when: str | None = None  # only when the source has this: 'object' or 'gt'
+    when: str | None = None  # only when the source has this: 'object', 'gt' or 'arm'
     fill: float | int | bool = 0
 
     def shape(self, n_frames: int, sizes: dict[str, int]) -> tuple[int, ...]:
@@ -119,15 +130,20 @@ class ArraySpec:
 
 
 _STATUS = ArraySpec("status", (), "int16", ())
+_HAND_STATUS = ArraySpec("hand_status", ("S",), "int16", ("hand",))
 _MASK = ("H", "W")
 _MASK_DIMS = ("y", "x")
+_HAND_MASK = ("S", "H", "W")
+_HAND_MASK_DIMS = ("hand", "y", "x")
 
 ARRAYS: dict[str, tuple[ArraySpec, ...]] = {
     "ingest": (
         ArraySpec("frames", ("H", "W", 3), "uint8", ("y", "x", "rgb"), image=True),
         ArraySpec("world_from_camera", (4, 4), "float64", ("row", "col")),
-        ArraySpec("keypoints", (21, 3), "float32", ("joint", "xyz")),
-        ArraySpec("keypoints_valid", (21,), "bool", ("joint",), fill=False),
+        ArraySpec("keypoints", ("S", 21, 3), "float32", ("hand", "joint", "xyz")),
+        ArraySpec("keypoints_valid", ("S", 21), "bool", ("hand", "joint"), fill=False),
+        ArraySpec("arm_keypoints", ("S", 3, 3), "float32", ("hand", "arm_joint", "xyz"), when="arm"),
+        ArraySpec("arm_valid", ("S", 3), "bool", ("hand", "arm_joint"), when="arm", fill=False),
         ArraySpec("object_mask", _MASK, "bool", _MASK_DIMS, image=True, when="object", fill=False),
         ArraySpec("object_pose", (4, 4), "float64", ("row", "col"), when="object"),
         ArraySpec("gt_hand_mask", _MASK, "bool", _MASK_DIMS, image=True, when="gt", fill=False),
@@ -135,10 +151,20 @@ ARRAYS: dict[str, tuple[ArraySpec, ...]] = {
         ArraySpec("gt_background", ("H", "W", 3), "uint8", ("y", "x", "rgb"), image=True, when="gt"),
         _STATUS,
     ),
+    "registration": (
+        ArraySpec("keypoints", ("S", 21, 3), "float32", ("hand", "joint", "xyz")),
+        ArraySpec("keypoints_valid", ("S", 21), "bool", ("hand", "joint"), fill=False),
+        ArraySpec("arm_keypoints", ("S", 3, 3), "float32", ("hand", "arm_joint", "xyz"), when="arm"),
+        ArraySpec("offset_px", ("S", 2), "float32", ("hand", "uv")),
+        ArraySpec("scale", ("S",), "float32", ("hand",), fill=1.0),
+        _HAND_STATUS,
+        _STATUS,
+    ),
     "segment": (
-        ArraySpec("hand_mask", _MASK, "bool", _MASK_DIMS, image=True, fill=False),
-        ArraySpec("handarm_mask", _MASK, "bool", _MASK_DIMS, image=True, fill=False),
-        ArraySpec("confidence", (), "float32", ()),
+        ArraySpec("hand_mask", _HAND_MASK, "bool", _HAND_MASK_DIMS, image=True, fill=False),
+        ArraySpec("handarm_mask", _HAND_MASK, "bool", _HAND_MASK_DIMS, image=True, fill=False),
+        ArraySpec("confidence", ("S",), "float32", ("hand",)),
+        _HAND_STATUS,
         _STATUS,
     ),
     "restore_background": (
@@ -147,28 +173,33 @@ ARRAYS: dict[str, tuple[ArraySpec, ...]] = {
         _STATUS,
     ),
     "retarget": (
-        ArraySpec("qpos", ("dof",), "float32", ("dof",)),
-        ArraySpec("root_pose", (4, 4), "float64", ("row", "col")),
-        ArraySpec("fingertip_error_mm", (), "float32", ()),
-        ArraySpec("wrist_error_mm", (), "float32", ()),
+        ArraySpec("qpos", ("S", "dof"), "float32", ("hand", "dof")),
+        ArraySpec("root_pose", ("S", 4, 4), "float64", ("hand", "row", "col")),
+        ArraySpec("fingertip_error_mm", ("S",), "float32", ("hand",)),
+        ArraySpec("wrist_error_mm", ("S",), "float32", ("hand",)),
+        _HAND_STATUS,
         _STATUS,
     ),
     "render": (
         ArraySpec("rgba", ("H", "W", 4), "uint8", ("y", "x", "rgba"), image=True),
         ArraySpec("depth", _MASK, "float32", _MASK_DIMS, image=True),
+        ArraySpec("robot_side", _MASK, "uint8", _MASK_DIMS, image=True),  # 0: no robot, k+1: hand k's robot
+        _HAND_STATUS,
         _STATUS,
     ),
     "composite": (
         ArraySpec("image", ("H", "W", 3), "uint8", ("y", "x", "rgb"), image=True),
-        ArraySpec("robot_mask", _MASK, "bool", _MASK_DIMS, image=True, fill=False),
+        ArraySpec("robot_mask", _HAND_MASK, "bool", _HAND_MASK_DIMS, image=True, fill=False),
+        _HAND_STATUS,
         _STATUS,
     ),
     "harmonize": (
         ArraySpec("image", ("H", "W", 3), "uint8", ("y", "x", "rgb"), image=True),
         _STATUS,
     ),
-    "qc": (_STATUS,),
+    "qc": (_HAND_STATUS, _STATUS),
 }
+PER_HAND_STAGES = frozenset(s for s, specs in ARRAYS.items() if _HAND_STATUS in specs)
 
 # Which mask of the segment stage a scope uses.
 SCOPE_MASK = {"hand": "hand_mask", "hand_arm": "handarm_mask"}
@@ -178,6 +209,7 @@ LEDGER_COLUMNS: tuple[tuple[str, str], ...] = (
     ("clip", "str"),
     ("scope", "str"),
     ("embodiment", "str"),
+    ("side", "str"),  # "" for a frame-level rejection
     ("frame", "int32"),
     ("reason", "int16"),
     ("reason_name", "str"),
@@ -185,8 +217,8 @@ LEDGER_COLUMNS: tuple[tuple[str, str], ...] = (
 )
 
 
-def arrays_for(stage: str, has_object: bool, has_gt: bool) -> tuple[ArraySpec, ...]:
-    flags = {"object": has_object, "gt": has_gt, None: True}
+def arrays_for(stage: str, has_object: bool, has_gt: bool, has_arm: bool = False) -> tuple[ArraySpec, ...]:
+    flags = {"object": has_object, "gt": has_gt, "arm": has_arm, None: True}
     return tuple(a for a in ARRAYS[stage] if flags[a.when])
 
 

@@ -53,7 +53,7 @@ def read_ledger(root: zarr.Group) -> pd.DataFrame:
     A clip whose source could not be opened at all appears once, with frame -1.
     """
     rows = [
-        {"stage": "ingest", "clip": clip, "scope": "", "embodiment": "", "frame": -1,
+        {"stage": "ingest", "clip": clip, "scope": "", "embodiment": "", "side": "", "frame": -1,
          "reason": int(entry.get("reason", Reason.SOURCE_UNREADABLE)),
          "reason_name": _reason_name(int(entry.get("reason", Reason.SOURCE_UNREADABLE))), "detail": entry["error"]}
         for clip, entry in (root.attrs.get("clips") or {}).items()
@@ -68,6 +68,7 @@ def read_ledger(root: zarr.Group) -> pd.DataFrame:
                         "clip": unit.clip,
                         "scope": unit.scope or "",
                         "embodiment": unit.embodiment or "",
+                        "side": str(rej.get("side", "")),
                         "frame": int(rej["frame"]),
                         "reason": int(rej["reason"]),
                         "reason_name": _reason_name(int(rej["reason"])),
@@ -75,19 +76,38 @@ def read_ledger(root: zarr.Group) -> pd.DataFrame:
                     }
                 )
     frame = pd.DataFrame(rows, columns=[c for c, _ in LEDGER_COLUMNS])
-    return frame.sort_values(["clip", "embodiment", "stage", "frame"], kind="stable").reset_index(drop=True)
+    return frame.sort_values(["clip", "embodiment", "stage", "frame", "side"], kind="stable").reset_index(drop=True)
 
 
-def status_counts(root: zarr.Group) -> pd.DataFrame:
-    """Frames per (stage, status name) over the whole store, from the status arrays."""
+def unit_sides(root: zarr.Group, unit: Unit) -> list[str]:
+    """The hands of a unit's clip, in hand-axis order (one-hand sources: one side)."""
+    attrs = root[unit.path].attrs
+    hands = attrs.get("hands")
+    if hands is None:
+        src = root[Unit("ingest", unit.clip).path].attrs if Unit("ingest", unit.clip).path in root else {}
+        hands = src.get("hands") or ["right"]
+    return list(hands)
+
+
+def status_counts(root: zarr.Group, by_side: bool = False) -> pd.DataFrame:
+    """Frames per (stage, status name) over the whole store, from the status arrays; with
+    ``by_side``, per-hand stages are counted per (stage, side, status) from ``hand_status``."""
     rows = []
     for unit in iter_units(root):
-        status = root[unit.path]["status"][:]
-        codes, counts = np.unique(status, return_counts=True)
-        for code, count in zip(codes, counts):
-            rows.append({"stage": unit.stage, "status": _reason_name(int(code)), "frames": int(count)})
-    df = pd.DataFrame(rows, columns=["stage", "status", "frames"])
-    return df.groupby(["stage", "status"], sort=False, as_index=False)["frames"].sum()
+        group = root[unit.path]
+        if by_side and "hand_status" in group:
+            hs = group["hand_status"][:]
+            for k, side in enumerate(unit_sides(root, unit)):
+                codes, counts = np.unique(hs[:, k], return_counts=True)
+                rows += [{"stage": unit.stage, "side": side, "status": _reason_name(int(c)), "frames": int(n)}
+                         for c, n in zip(codes, counts)]
+            continue
+        codes, counts = np.unique(group["status"][:], return_counts=True)
+        rows += [{"stage": unit.stage, "side": None, "status": _reason_name(int(c)), "frames": int(n)}
+                 for c, n in zip(codes, counts)]
+    cols = ["stage", "side", "status", "frames"] if by_side else ["stage", "status", "frames"]
+    df = pd.DataFrame(rows, columns=["stage", "side", "status", "frames"])[cols]
+    return df.groupby(cols[:-1], sort=False, as_index=False, dropna=False)["frames"].sum()
 
 
 def write_ledger_table(root: zarr.Group, ledger: pd.DataFrame | None = None) -> int:

@@ -107,6 +107,7 @@ def create_unit(
     has_object: bool = False,
     has_gt: bool = False,
     attrs: dict | None = None,
+    has_arm: bool = False,
 ) -> zarr.Group:
     """Driver: create (or reuse, when the shape matches) a unit's group and arrays.
 
@@ -115,7 +116,7 @@ def create_unit(
     """
     group = root.require_group(unit.path)
     recreated = False
-    for spec in arrays_for(unit.stage, has_object, has_gt):
+    for spec in arrays_for(unit.stage, has_object, has_gt, has_arm):
         shape = spec.shape(n_frames, sizes)
         if spec.name in group:
             existing = group[spec.name]
@@ -146,9 +147,9 @@ def _create_array(group: zarr.Group, spec: ArraySpec, shape: tuple[int, ...], f:
         )
 
 
-def create_previews(root: zarr.Group, unit: Unit, height: int, width: int) -> None:
-    """Driver: the (empty) review-preview group of a hand-arm retarget unit."""
-    group = root.require_group(preview_path(unit))
+def create_previews(root: zarr.Group, unit: Unit, height: int, width: int, side: str) -> None:
+    """Driver: the (empty) review-preview group of one hand of a hand-arm retarget unit."""
+    group = root.require_group(preview_path(unit, side))
     k, p = PREVIEW_CANDIDATES, PREVIEW_FRAMES
     for name in ("ego", "third"):
         if name not in group or group[name].shape != (k, p, height, width, 4):
@@ -160,9 +161,9 @@ def create_previews(root: zarr.Group, unit: Unit, height: int, width: int) -> No
 
 
 def write_previews(root: zarr.Group, unit: Unit, candidates: list[int], frames: list[int],
-                   ego: np.ndarray, third: np.ndarray) -> dict[str, str]:
-    """Task: the top candidates' egocentric and third-person renders (the unit's one writer)."""
-    group = root[preview_path(unit)]
+                   ego: np.ndarray, third: np.ndarray, side: str) -> dict[str, str]:
+    """Task: one hand's top candidates' egocentric and third-person renders (the unit's one writer)."""
+    group = root[preview_path(unit, side)]
     k, p = len(candidates), len(frames)
     group["candidates"][:] = np.array([*candidates, *[-1] * (PREVIEW_CANDIDATES - k)], np.int16)
     group["frames"][:p] = np.asarray(frames, np.int32)
@@ -171,8 +172,8 @@ def write_previews(root: zarr.Group, unit: Unit, candidates: list[int], frames: 
     return {"previews/ego": digest(ego), "previews/third": digest(third)}
 
 
-def read_previews(root: zarr.Group, unit: Unit) -> dict[str, np.ndarray]:
-    group = root[preview_path(unit)]
+def read_previews(root: zarr.Group, unit: Unit, side: str) -> dict[str, np.ndarray]:
+    group = root[preview_path(unit, side)]
     cands = group["candidates"][:]
     k = int((cands >= 0).sum())
     frames = group["frames"][:]
@@ -185,7 +186,7 @@ def digest(array: np.ndarray) -> str:
     a = np.ascontiguousarray(array)
     h = hashlib.blake2b(digest_size=16)
     h.update(f"{a.dtype.str}{a.shape}".encode())
-    h.update(memoryview(a).cast("B"))
+    h.update(memoryview(a).cast("B") if a.size else b"")
     return h.hexdigest()
 
 

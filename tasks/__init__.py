@@ -8,6 +8,7 @@ from handedit.tasks import composite as _composite
 from handedit.tasks import harmonize as _harmonize
 from handedit.tasks import ingest as _ingest
 from handedit.tasks import qc as _qc
+from handedit.tasks import registration as _registration
 from handedit.tasks import render as _render
 from handedit.tasks import restore_background as _restore_background
 from handedit.tasks import retarget as _retarget
@@ -15,6 +16,7 @@ from handedit.tasks import segment as _segment
 
 _MODULES = {
     "ingest": _ingest,
+    "registration": _registration,
     "segment": _segment,
     "restore_background": _restore_background,
     "retarget": _retarget,

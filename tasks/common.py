@@ -68,13 +68,20 @@ class ChunkJob:
 
 @dataclass
 class StageOutput:
-    """What a stage body hands back: arrays for its chunk, per-frame status, details."""
+    """What a stage body hands back: arrays for its chunk, per-frame status, details.
+
+    Per-hand stages also return ``hand_status`` (n,S); their rejections are then recorded
+    per hand (the ledger's ``side``), and the frame-level status (derived from the hands)
+    adds no rows of its own.
+    """
 
     arrays: dict[str, np.ndarray]
     status: np.ndarray
     method: str = ""
     details: dict[int, str] = field(default_factory=dict)  # chunk-relative frame -> text
     extra: dict = field(default_factory=dict)
+    hand_status: np.ndarray | None = None  # (n,S)
+    hand_details: dict[tuple[int, int], str] = field(default_factory=dict)  # (frame, hand index) -> text
 
 
 @lru_cache(maxsize=8)
@@ -100,8 +107,12 @@ def execute(job: ChunkJob, body: Callable[[zarr.Group, ChunkJob], StageOutput]) 
     root = open_root(job.store)
     out = body(root, job)
     status = np.asarray(out.status, dtype=np.int16)
-    digests = write_chunk(root, job.unit, job.start, {**out.arrays, "status": status})
-    return make_record(job, status, digests, out.method, out.details, out.extra, started, time.perf_counter() - t0)
+    arrays = {**out.arrays, "status": status}
+    if out.hand_status is not None:
+        arrays["hand_status"] = np.asarray(out.hand_status, dtype=np.int16)
+    digests = write_chunk(root, job.unit, job.start, arrays)
+    return make_record(job, status, digests, out.method, out.details, out.extra, started, time.perf_counter() - t0,
+                       hand_status=out.hand_status, hand_details=out.hand_details)
 
 
 def make_record(
@@ -115,16 +126,24 @@ def make_record(
     seconds: float,
     outcome: str = "ok",
     error: str | None = None,
+    hand_status: np.ndarray | None = None,
+    hand_details: dict[tuple[int, int], str] | None = None,
 ) -> dict:
     codes, counts = np.unique(status, return_counts=True)
-    rejections = [
-        {
-            "frame": job.start + int(i),
-            "reason": int(status[i]),
-            "detail": details.get(int(i), error or Reason(int(status[i])).name.lower().replace("_", " ")),
-        }
-        for i in np.flatnonzero(status >= 100)
-    ]
+
+    def text(code: int, given: str | None) -> str:
+        return given or error or Reason(code).name.lower().replace("_", " ")
+
+    if hand_status is None:
+        rejections = [{"frame": job.start + int(i), "reason": int(status[i]), "detail": text(int(status[i]), details.get(int(i)))}
+                      for i in np.flatnonzero(status >= 100)]
+    else:
+        hs = np.asarray(hand_status)
+        sides = list(job.context.get("hands") or [])
+        hand_details = hand_details or {}
+        rejections = [{"frame": job.start + int(i), "side": sides[k] if k < len(sides) else str(k), "reason": int(hs[i, k]),
+                       "detail": text(int(hs[i, k]), hand_details.get((int(i), int(k))) or details.get(int(i)))}
+                      for i, k in zip(*np.nonzero(hs >= 100))]
     return ChunkRecord(
         stage=job.unit.stage,
         chunk=job.chunk,
@@ -154,7 +173,11 @@ def failure_record(job: ChunkJob, root: zarr.Group, reason: Reason, error: str, 
     The failed task is no longer running, so the driver is the chunk's only writer.
     """
     status = np.full(job.n, int(reason), dtype=np.int16)
-    digests = write_chunk(root, job.unit, job.start, {"status": status})
+    arrays = {"status": status}
+    group = root[job.unit.path]
+    if "hand_status" in group:
+        arrays["hand_status"] = np.full((job.n, group["hand_status"].shape[1]), int(reason), np.int16)
+    digests = write_chunk(root, job.unit, job.start, arrays)
     record = make_record(job, status, digests, "", {}, {}, now_iso(), 0.0, outcome="error", error=error)
     record["attempts"] = attempts
     return record

@@ -1,9 +1,10 @@
-"""composite: the rendered robot over the restored background, respecting occlusion.
+"""composite: the rendered robots over the restored background, respecting occlusion.
 
 Occlusion by the object: the source's object mask always; plus the object's depth
 (rasterized from its mesh and per-frame pose, ``handedit.vision.object_depth``) when the
 job's context names the clip's ``source`` (its mesh) and the pose is known, so the
-nearer surface wins per pixel.
+nearer surface wins per pixel. Hands whose robot is not drawn get their source pixels
+back; replaced hands are checked for visible human residue.
 """
 
 from __future__ import annotations
@@ -12,14 +13,15 @@ import numpy as np
 import zarr
 from prefect import task
 
-from handedit.camera import Intrinsics
-from handedit.reasons import combine, gate
+from handedit.camera import Intrinsics, project
+from handedit.reasons import Reason, combine, gate, per_frame
 from handedit.sources import open_source_json
-from handedit.vision.composite import CompositeConfig, composite as composite_frames
-from handedit.vision.object_depth import object_occluder
 from handedit.storage import Unit, read_chunk
+from handedit.storage.layout import SCOPE_MASK
 from handedit.tasks._options import stage_options
 from handedit.tasks.common import ChunkJob, StageOutput, execute
+from handedit.vision.composite import CompositeConfig, composite as composite_frames
+from handedit.vision.object_depth import object_occluder
 
 
 def _object_mesh(source_json: str | None):
@@ -30,21 +32,34 @@ def _object_mesh(source_json: str | None):
 
 
 def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
-    clip, emb = job.unit.clip, job.unit.embodiment
-    bg = read_chunk(root, Unit("restore_background", clip, scope=job.context["scope"]), ["background", "status"], job.start, job.stop)
-    ren = read_chunk(root, Unit("render", clip, embodiment=emb), ["rgba", "depth", "status"], job.start, job.stop)
+    clip, emb, scope = job.unit.clip, job.unit.embodiment, job.context["scope"]
+    a, b = job.start, job.stop
+    bg = read_chunk(root, Unit("restore_background", clip, scope=scope), ["background", "status"], a, b)
+    ren = read_chunk(root, Unit("render", clip, embodiment=emb), ["rgba", "depth", "robot_side", "hand_status", "status"], a, b)
+    seg = read_chunk(root, Unit("segment", clip), [SCOPE_MASK[scope], "hand_status"], a, b)
+    reg = read_chunk(root, Unit("registration", clip), ["keypoints", "keypoints_valid"], a, b)
+    intr = Intrinsics(**job.context["intrinsics"])
+    src = read_chunk(root, Unit("ingest", clip), ["frames"], a, b)
     occluder, occluder_depth = None, None
     if job.context.get("has_object"):
-        obj = read_chunk(root, Unit("ingest", clip), ["object_mask", "object_pose"], job.start, job.stop)
+        obj = read_chunk(root, Unit("ingest", clip), ["object_mask", "object_pose"], a, b)
         vertices, faces = _object_mesh(job.context.get("source"))
         occluder, occluder_depth = object_occluder(
-            obj["object_mask"], vertices, faces, obj["object_pose"], Intrinsics(**job.context["intrinsics"])
+            obj["object_mask"], vertices, faces, obj["object_pose"], intr
         )
-    result = composite_frames(bg["background"], ren["rgba"], ren["depth"], occluder, occluder_depth, CompositeConfig(**job.params))
     ready = gate(bg["status"], ren["status"])
-    arrays = {"image": result.image, "robot_mask": result.robot_mask}
+    replace = ready[:, None] & (ren["hand_status"] == Reason.OK)
+    result = composite_frames(bg["background"], ren["rgba"], ren["depth"], occluder, occluder_depth, CompositeConfig(**job.params),
+                              robot_side=ren["robot_side"], replace=replace, source=src["frames"], human_mask=seg[SCOPE_MASK[scope]],
+                              keypoints_2d=project(reg["keypoints"], intr), keypoints_valid=reg["keypoints_valid"])
+    upstream = ren["hand_status"]
+    hand_status = np.where(replace, result.hand_status,
+                           np.where(upstream == Reason.ABSENT, Reason.ABSENT, Reason.UPSTREAM)).astype(np.int16)
     method = result.method + ("+object-mesh-depth" if occluder_depth is not None else "")
-    return StageOutput(arrays, combine(result.status, ready), method=method)
+    res = result.residue
+    extra = {"residue_max": [None if not np.isfinite(res[:, k]).any() else float(np.nanmax(res[:, k])) for k in range(res.shape[1])]}
+    return StageOutput({"image": result.image, "robot_mask": result.robot_mask}, combine(per_frame(hand_status), ready),
+                       method=method, hand_status=hand_status, extra=extra)
 
 
 @task(**stage_options("composite"))

@@ -19,6 +19,8 @@ def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
         "keypoints": chunk.keypoints,
         "keypoints_valid": chunk.keypoints_valid,
     }
+    if job.context.get("has_arm"):
+        arrays["arm_keypoints"], arrays["arm_valid"] = chunk.arms()
     if job.context.get("has_object"):
         arrays["object_mask"] = chunk.object_mask
         arrays["object_pose"] = chunk.object_pose

@@ -25,7 +25,8 @@ def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     seg = read_chunk(root, Unit("segment", clip), [mask_name, "status"], lo, hi)
     usable = gate(seg["status"])  # frames whose masks can be trusted, as sources or targets
     targets = np.arange(job.start - lo, job.stop - lo)
-    result = restore(src["frames"], seg[mask_name], targets, RestoreConfig(**job.params), frame_ok=usable)
+    # every hand is removed (the union of the per-hand masks); composite pastes back hands it does not replace
+    result = restore(src["frames"], seg[mask_name].any(axis=1), targets, RestoreConfig(**job.params), frame_ok=usable)
     arrays = {"background": result.background, "filled_from_video": result.filled_from_video}
     return StageOutput(arrays, combine(result.status, usable[targets]), method=result.method)
 

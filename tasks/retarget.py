@@ -1,74 +1,103 @@
-"""retarget: robot joint trajectory and root pose for one chunk of hand keypoints."""
+"""retarget: robot joint trajectories and root poses of every hand in one chunk (hand-only)
+or in the whole clip (hand-arm: the virtual base is fixed per sequence)."""
 
 from __future__ import annotations
 
+import numpy as np
 import zarr
 from prefect import task
 
-from handedit.reasons import combine, gate
-from handedit.retarget import RetargetConfig, retarget as retarget_keypoints
 from handedit.camera import Intrinsics
+from handedit.reasons import Reason, combine, combine_hands, gate, per_frame
+from handedit.retarget import RetargetConfig
+from handedit.retarget.sides import SidesResult, preview_intrinsics, retarget_hand_arm_sides, retarget_sides
 from handedit.storage import Unit, open_store, read_chunk
 from handedit.storage.store import write_previews
 from handedit.tasks._options import stage_options
 from handedit.tasks.common import ChunkJob, StageOutput, execute
 
 
+def _inputs(root: zarr.Group, job: ChunkJob, extra: tuple[str, ...] = ()) -> dict:
+    clip = job.unit.clip
+    arm = job.context.get("has_arm", False) and job.context.get("track") == "hand_arm"
+    src = read_chunk(root, Unit("ingest", clip), ["status", *extra, *(["arm_valid"] if arm else [])], job.start, job.stop)
+    reg = read_chunk(root, Unit("registration", clip), ["keypoints", "keypoints_valid", "hand_status", "status",
+                                                    *(["arm_keypoints"] if arm else [])], job.start, job.stop)
+    seg = read_chunk(root, Unit("segment", clip), ["hand_status"], job.start, job.stop)
+    ok = gate(src["status"], reg["status"])
+    # a hand is retargeted where it was registered and segmented
+    ready = ok[:, None] & (reg["hand_status"] == Reason.OK) & (seg["hand_status"] == Reason.OK)
+    return {**src, **{f"reg_{k}": v for k, v in reg.items()}, "seg_hand_status": seg["hand_status"], "ok": ok, "ready": ready}
+
+
+def _object(root: zarr.Group, job: ChunkJob):
+    from handedit.sources import open_source_json
+
+    if not (job.context.get("has_object") and job.context.get("source")):
+        return None, None
+    mesh = open_source_json(job.context["source"]).object_mesh()
+    pose = read_chunk(root, Unit("ingest", job.unit.clip), ["object_pose"], job.start, job.stop)["object_pose"]
+    return mesh, pose
+
+
+def _output(res: SidesResult, inp: dict, method: str, extra: dict) -> StageOutput:
+    reg_hs = inp["reg_hand_status"]
+    own = np.where(inp["ready"], res.hand_status, Reason.UPSTREAM)
+    hand_status = np.where(reg_hs == Reason.ABSENT, Reason.ABSENT, own).astype(np.int16)
+    arrays = {"qpos": res.qpos, "root_pose": res.root_pose, "fingertip_error_mm": res.fingertip_error_mm,
+              "wrist_error_mm": res.wrist_error_mm}
+    return StageOutput(arrays, combine(per_frame(hand_status), inp["ok"]), method=method, hand_status=hand_status,
+                       hand_details=res.details,
+                       extra={"qc_contact_checked": res.contact_checked, "qc_notes": res.notes, **extra})
+
+
 def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     if job.context.get("track") == "hand_arm":
         return _hand_arm_body(root, job)
-    src = read_chunk(root, Unit("ingest", job.unit.clip), ["keypoints", "keypoints_valid", "status"], job.start, job.stop)
-    cfg = RetargetConfig(**job.params)
-    result = retarget_keypoints(src["keypoints"], src["keypoints_valid"], job.unit.embodiment, cfg)
-    qc = _qc(root, job, result, src["keypoints"], src["keypoints_valid"], cfg, job.start, job.stop)
-    arrays = {
-        "qpos": result.qpos,
-        "root_pose": result.root_pose,
-        "fingertip_error_mm": result.fingertip_error_mm,
-        "wrist_error_mm": result.wrist_error_mm,
-    }
-    return StageOutput(arrays, combine(qc.status, gate(src["status"])), method="casadi:ipopt-hybrid",
-                       details=qc.details, extra={"qc_contact_checked": qc.contact_checked, "qc_notes": qc.notes})
-
-
-def _qc(root: zarr.Group, job: ChunkJob, result, keypoints, valid, cfg: RetargetConfig, start: int, stop: int):
-    """Retargeting QC of frames [start, stop); contact/penetration against the object when the
-    source has one (mesh from the source, pose from ingest)."""
-    from handedit.retarget.qc import RetargetQCConfig, retarget_qc
-    from handedit.sources import open_source_json
-
-    mesh = pose = None
-    if job.context.get("has_object") and job.context.get("source"):
-        mesh = open_source_json(job.context["source"]).object_mesh()
-        pose = read_chunk(root, Unit("ingest", job.unit.clip), ["object_pose"], start, stop)["object_pose"]
-    return retarget_qc(result, keypoints, valid, job.unit.embodiment, RetargetQCConfig.from_retarget(cfg),
-                       cfg, object_mesh=mesh, object_pose=pose)
+    inp = _inputs(root, job)
+    mesh, pose = _object(root, job)
+    sides = tuple(job.context["hands"])
+    res = retarget_sides(inp["reg_keypoints"], inp["reg_keypoints_valid"], inp["ready"], sides, job.unit.embodiment,
+                         RetargetConfig(**job.params), object_mesh=mesh, object_pose=pose)
+    return _output(res, inp, "casadi:ipopt-hybrid", {})
 
 
 def _hand_arm_body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     """Hand-arm: one job covers the whole clip (the virtual base is fixed per sequence);
-    the sequence-level record (all 27 candidate scores, the choice and its policy) goes to
-    provenance."""
-    from handedit.retarget.hand_arm import merge_hand_qc, retarget_hand_arm
+    the sequence-level record (all 27 candidate scores per side, the choice and its policy,
+    the dual-arm pair) goes to provenance, the top candidates' previews to the store."""
     from handedit.retarget.preview import top_previews
 
-    src = read_chunk(root, Unit("ingest", job.unit.clip), ["keypoints", "keypoints_valid", "world_from_camera", "status"],
-                     job.start, job.stop)
-    # an operator's choice from `handedit review` (read fresh: the cached root may predate it)
-    review = (open_store(job.store).attrs.get("reviews") or {}).get(f"{job.unit.clip}/{job.unit.embodiment}")
-    cfg = RetargetConfig(**job.params)
-    res = retarget_hand_arm(src["keypoints"], src["keypoints_valid"], job.unit.embodiment, cfg,
-                            world_from_camera=src["world_from_camera"], choice=None if review is None else review["choice"])
-    qc = _qc(root, job, res.hand, src["keypoints"], src["keypoints_valid"], cfg, job.start, job.stop)
-    status, details = merge_hand_qc(res, qc)
-    previews = write_previews(root, job.unit, *top_previews(res, Intrinsics(**job.context["intrinsics"]),
-                                                              world_from_camera=src["world_from_camera"]))
-    arrays = {"qpos": res.qpos, "root_pose": res.root_pose,
-              "fingertip_error_mm": res.fingertip_error_mm, "wrist_error_mm": res.wrist_error_mm}
-    return StageOutput(arrays, combine(status, gate(src["status"])), method="casadi:ipopt-hybrid+virtual-base",
-                       details=details,
-                       extra={"virtual_base": res.summary(), "previews": previews,
-                              "qc_contact_checked": qc.contact_checked, "qc_notes": qc.notes})
+    inp = _inputs(root, job, ("world_from_camera",))
+    mesh, pose = _object(root, job)
+    sides = tuple(job.context["hands"])
+    # operators' choices from `handedit review` (read fresh: the cached root may predate them)
+    reviews = open_store(job.store).attrs.get("reviews") or {}
+    choices = {s: reviews[k]["choice"] for s in sides if (k := f"{job.unit.clip}/{job.unit.embodiment}/{s}") in reviews}
+    world = job.context.get("world")
+    wfc = inp["world_from_camera"] if world else None
+    res = retarget_hand_arm_sides(inp["reg_keypoints"], inp["reg_keypoints_valid"], inp["ready"], sides, job.unit.embodiment,
+                                  RetargetConfig(**job.params), wfc, world, inp.get("reg_arm_keypoints"), inp.get("arm_valid"),
+                                  choices, object_mesh=mesh, object_pose=pose)
+    intr = Intrinsics(**job.context["intrinsics"])
+    previews = {}
+    for k, side in enumerate(sides):
+        arm_res = res.arm_results.get(k)
+        if arm_res is None:
+            continue
+        cands, frames, ego, third = top_previews(arm_res, preview_intrinsics(intr, side),
+                                                 world_from_camera=None if wfc is None else _side_world(wfc, side),
+                                                 up=None if world is None else np.asarray(world["up"], float))
+        if side == "left":  # rendered in the mirrored view: flip back
+            ego, third = ego[..., ::-1, :], third[..., ::-1, :]
+        previews[side] = write_previews(root, job.unit, cands, frames, ego, third, side=side)
+    return _output(res, inp, "casadi:ipopt-hybrid+virtual-base", {"virtual_base": res.virtual_base, "previews": previews})
+
+
+def _side_world(wfc: np.ndarray, side: str) -> np.ndarray:
+    from handedit.embodiments.mirror import mirror_world
+
+    return mirror_world(wfc) if side == "left" else wfc
 
 
 @task(**stage_options("retarget"))

@@ -1,12 +1,13 @@
-"""segment: hand and hand-arm masks for one chunk, seeded by the projected keypoints."""
+"""segment: per-hand hand and hand-arm masks for one chunk, seeded by the registered keypoints."""
 
 from __future__ import annotations
 
+import numpy as np
 import zarr
 from prefect import task
 
 from handedit.camera import Intrinsics, project
-from handedit.reasons import combine, gate
+from handedit.reasons import Reason, combine, combine_hands, gate, per_frame
 from handedit.vision.segment import SegmentConfig, segment as segment_frames
 from handedit.storage import Unit, read_chunk
 from handedit.tasks._options import stage_options
@@ -14,11 +15,29 @@ from handedit.tasks.common import ChunkJob, StageOutput, execute
 
 
 def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
-    src = read_chunk(root, Unit("ingest", job.unit.clip), ["frames", "keypoints", "keypoints_valid", "status"], job.start, job.stop)
+    clip = job.unit.clip
+    src = read_chunk(root, Unit("ingest", clip), ["frames", "status"], job.start, job.stop)
+    arm = job.context.get("has_arm", False)
+    reg = read_chunk(root, Unit("registration", clip), ["keypoints", "keypoints_valid", "hand_status", "status",
+                                                    *(["arm_keypoints"] if arm else [])], job.start, job.stop)
     intr = Intrinsics(**job.context["intrinsics"])
-    result = segment_frames(src["frames"], project(src["keypoints"], intr), src["keypoints_valid"], SegmentConfig(**job.params))
+    cfg = SegmentConfig(**job.params)
+    ok = gate(src["status"], reg["status"])
+    if job.context.get("has_keypoints", True):
+        present = reg["hand_status"] == Reason.OK
+        arm_2d = None
+        if arm:  # elbow and shoulder; points behind the camera project to NaN and are not used
+            arm_2d = project(reg["arm_keypoints"][:, :, :2], intr)
+        result = segment_frames(src["frames"], project(reg["keypoints"], intr), reg["keypoints_valid"], cfg,
+                                present=present, arm_2d=arm_2d)
+        hand_ready = ok[:, None] & present
+        hand_status = np.where(reg["hand_status"] == Reason.OK, combine_hands(result.hand_status, hand_ready),
+                               np.where(reg["hand_status"] == Reason.ABSENT, Reason.ABSENT, Reason.UPSTREAM))
+    else:  # no keypoints at all: the hand is found by skin colour (and removed), not retargeted
+        result = segment_frames(src["frames"], None, None, cfg)
+        hand_status = combine_hands(result.hand_status, ok[:, None])
     arrays = {"hand_mask": result.hand_mask, "handarm_mask": result.handarm_mask, "confidence": result.confidence}
-    return StageOutput(arrays, combine(result.status, gate(src["status"])), method=result.method)
+    return StageOutput(arrays, combine(per_frame(hand_status), ok), method=result.method, hand_status=hand_status)
 
 
 @task(**stage_options("segment"))

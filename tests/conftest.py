@@ -45,6 +45,12 @@ def real_video(shared_dir: Path) -> Path:
 
 
 @pytest.fixture(scope="session")
+def egodex_dir(shared_dir: Path) -> Path:
+    """The two real EgoDex episodes (CC BY-NC-ND: read in place, never copied into the repo)."""
+    return _need(shared_dir / "data" / "egodex", "EgoDex sample episodes")
+
+
+@pytest.fixture(scope="session")
 def prefect_api():
     """A real Prefect API server on 127.0.0.1 for the whole session."""
     from prefect.testing.utilities import prefect_test_harness

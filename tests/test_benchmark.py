@@ -51,7 +51,7 @@ def write_curated_store(path, n_frames: int = 6, rejected: tuple[int, ...] = (2,
     that shows the restored background plus a dark-and-white "robot", QC statuses."""
     src = open_source(make_clip_specs(1, seed=5, n_frames=n_frames, width=160, height=120)[0])
     info, ch = src.info(), src.read(0, n_frames)
-    clip, f, sizes = info.clip_id, 8, {"H": 120, "W": 160}
+    clip, f, sizes = info.clip_id, 8, {"H": 120, "W": 160, "S": 1}
     root = create_or_open_store(path, f, "test")
     hand = ch.gt["hand_mask"]
     robot = np.roll(hand, 3, axis=2) | np.roll(hand, -2, axis=1)
@@ -62,12 +62,14 @@ def write_curated_store(path, n_frames: int = 6, rejected: tuple[int, ...] = (2,
     ok = np.full(n_frames, int(Reason.OK), np.int16)
     qc = ok.copy()
     qc[list(rejected)] = int(Reason.FINGERTIP_ERROR)
+    one = ok[:, None]  # one hand
     for unit, arrays, kw in [
         (Unit("ingest", clip), {"frames": ch.frames, "object_mask": ch.object_mask, "status": ok}, {"has_object": True, "has_gt": True}),
-        (Unit("segment", clip), {"hand_mask": hand, "handarm_mask": ch.gt["handarm_mask"], "status": ok}, {}),
-        (Unit("composite", clip, embodiment=EMB), {"image": gt, "robot_mask": robot, "status": ok}, {}),
+        (Unit("segment", clip), {"hand_mask": hand[:, None], "handarm_mask": ch.gt["handarm_mask"][:, None], "status": ok,
+                                 "hand_status": one}, {}),
+        (Unit("composite", clip, embodiment=EMB), {"image": gt, "robot_mask": robot[:, None], "status": ok, "hand_status": one}, {}),
         (Unit("harmonize", clip, embodiment=EMB), {"image": gt, "status": ok}, {}),
-        (Unit("qc", clip, embodiment=EMB), {"status": qc}, {}),
+        (Unit("qc", clip, embodiment=EMB), {"status": qc, "hand_status": qc[:, None]}, {}),
     ]:
         create_unit(root, unit, n_frames, sizes, f, **kw)
         write_chunk(root, unit, 0, arrays)

@@ -20,7 +20,7 @@ def test_curate_demo_then_status_ledger_dashboard(tmp_path, capsys, prefect_api,
     status = capsys.readouterr().out
     assert "qc" in status and "OK" in status
     assert main(["ledger", str(out), "--csv"]) == 0
-    assert capsys.readouterr().out.startswith("stage,clip,scope,embodiment,frame,reason,reason_name,detail")
+    assert capsys.readouterr().out.startswith("stage,clip,scope,embodiment,side,frame,reason,reason_name,detail")
     assert main(["dashboard", str(out)]) == 0
     page = (out / "qa.html").read_text()
     assert "Kept frames" in page and "synthetic-0000" in page and "data:image/png;base64" in page
@@ -39,5 +39,5 @@ def test_inspecting_something_that_is_not_a_store(tmp_path):
 
 
 def test_curate_needs_an_input(tmp_path):
-    with pytest.raises(SystemExit, match="give --demo, --video FILE or --config FILE"):
+    with pytest.raises(SystemExit, match="give --demo, --video FILE, --source NAME --root DIR or --config FILE"):
         main(["curate", "--out", str(tmp_path)])

@@ -21,7 +21,7 @@ from handedit.storage.layout import arrays_for
 W, H, T, F = 192, 144, 16, 8
 EMB = "allegro"
 CLIPS = ["synthetic-0000", "synthetic-0001"]
-STAGES = ("ingest", "segment", "restore_background", "retarget", "render", "composite", "harmonize", "qc")
+STAGES = ("ingest", "registration", "segment", "restore_background", "retarget", "render", "composite", "harmonize", "qc")
 
 
 def make_config(out, cluster, **kw) -> CurateConfig:
@@ -32,7 +32,7 @@ def make_config(out, cluster, **kw) -> CurateConfig:
 
 def units_of(clip: str) -> list[Unit]:
     return [
-        Unit("ingest", clip), Unit("segment", clip), Unit("restore_background", clip, scope="hand"),
+        Unit("ingest", clip), Unit("registration", clip), Unit("segment", clip), Unit("restore_background", clip, scope="hand"),
         *(Unit(s, clip, embodiment=EMB) for s in ("retarget", "render", "composite", "harmonize", "qc")),
     ]
 
@@ -80,12 +80,12 @@ def test_stage_outputs_are_real(first_run):
         seg = root[Unit("segment", clip).path]
         ok = seg["status"][:] == Reason.OK
         assert ok.sum() >= T // 2, "segmentation rejected most frames of a synthetic clip"
-        gt, pred = src["gt_hand_mask"][:][ok], seg["hand_mask"][:][ok]
+        gt, pred = src["gt_hand_mask"][:][ok], seg["hand_mask"][:, 0][ok]  # one hand
         iou = (gt & pred).sum() / max((gt | pred).sum(), 1)
         assert iou > 0.5, f"hand-mask IoU {iou:.2f} against ground truth"
         ret = root[Unit("retarget", clip, embodiment=EMB).path]
         assert (ret["status"][:] == Reason.OK).sum() >= T // 2
-        assert np.isfinite(ret["qpos"][:]).all() and ret["qpos"].shape[1] == len(ret.attrs["joint_names"])
+        assert np.isfinite(ret["qpos"][:]).all() and ret["qpos"].shape[1:] == (1, len(ret.attrs["joint_names"]))
         ren = root[Unit("render", clip, embodiment=EMB).path]
         drawn = ren["status"][:] == Reason.OK
         assert drawn.any() and (ren["rgba"][:][drawn][..., 3] > 0).any(axis=(1, 2)).all()
@@ -94,7 +94,7 @@ def test_stage_outputs_are_real(first_run):
         qc = root[Unit("qc", clip, embodiment=EMB).path]["status"][:]
         kept = qc == Reason.OK
         assert kept.any(), f"no frame of {clip} survived QC"
-        robot = comp["robot_mask"][:][kept]
+        robot = comp["robot_mask"][:, 0][kept]
         assert robot.any(axis=(1, 2)).all()
         # outside the robot the composite keeps the restored scene, not the human hand
         bg = root[Unit("restore_background", clip, scope="hand").path]["background"][:][kept]
@@ -102,7 +102,7 @@ def test_stage_outputs_are_real(first_run):
         assert np.abs(img[~robot].astype(int) - bg[~robot]).mean() < 2.0
         assert harm["image"][:][kept].shape == img.shape
     ds = xr.open_zarr(str(config.out), group=Unit("ingest", CLIPS[0]).path, consolidated=False)
-    assert ds["keypoints"].dims == ("frame", "joint", "xyz")
+    assert ds["keypoints"].dims == ("frame", "hand", "joint", "xyz")
 
 
 def test_ledger_matches_statuses(first_run):
@@ -111,9 +111,12 @@ def test_ledger_matches_statuses(first_run):
     ledger = read_ledger(root)
     for clip in CLIPS:
         for unit in units_of(clip):
-            status = root[unit.path]["status"][:]
+            group = root[unit.path]
+            # per-hand stages record their hands' rejections; the others their frames'
+            status = group["hand_status"][:, 0] if "hand_status" in group else group["status"][:]
             rows = ledger[(ledger["stage"] == unit.stage) & (ledger["clip"] == clip)]
             assert sorted(rows["frame"]) == list(np.flatnonzero(status >= 100))
+            assert set(rows["side"]) <= ({"right"} if "hand_status" in group else {""})
     assert (ledger["reason"] >= 100).all()
 
 
@@ -163,7 +166,8 @@ def test_fault_in_one_clip_and_corrupt_source_leave_the_rest_complete(tmp_path, 
     # without the fault, a re-run redoes the failed chunks and what reads them, nothing else
     fixed = run_curate(config.model_copy(update={"inject_faults": []}))
     assert fixed["stages"]["segment"] == {"ran": T // F, "skipped": T // F, "failed": 0}
-    assert fixed["stages"]["retarget"]["ran"] == 0 and fixed["stages"]["ingest"]["ran"] == 0
+    # retarget reads which hands were segmented: only the fixed clip's chunks re-run
+    assert fixed["stages"]["retarget"]["ran"] == T // F and fixed["stages"]["ingest"]["ran"] == 0
     root = open_store(config.out)
     assert (root[Unit("qc", "synthetic-0001", embodiment=EMB).path]["status"][:] != Reason.UPSTREAM).any()
 
@@ -192,11 +196,14 @@ def test_real_video_without_keypoints(tmp_path, real_video, prefect_api, dask_cl
     frames = root[Unit("ingest", "real").path]["frames"]
     assert frames.shape == (F, 720, 1280, 3) and frames[F - 1].std() > 10  # real pixels
     seg = root[Unit("segment", "real").path]
-    hand_fraction = seg["handarm_mask"][:].mean(axis=(1, 2))
+    hand_fraction = seg["handarm_mask"][:, 0].mean(axis=(1, 2))
     assert ((hand_fraction > 0.005) & (hand_fraction < 0.6)).all(), hand_fraction  # found a hand, not the scene
-    ret = root[Unit("retarget", "real", embodiment=EMB).path]["status"][:]
-    assert (ret == Reason.NO_KEYPOINTS).all()
+    assert (seg["hand_status"][:] == Reason.OK).all()  # segmented by skin colour, and removed
+    # no keypoints: the hand is not retargeted; the ledger names the cause once, at registration
+    assert (root[Unit("registration", "real").path]["hand_status"][:] == Reason.NO_KEYPOINTS).all()
+    assert (root[Unit("retarget", "real", embodiment=EMB).path]["status"][:] == Reason.UPSTREAM).all()
     ledger = read_ledger(root)
-    rows = ledger[(ledger["stage"] == "retarget") & (ledger["clip"] == "real")]
+    rows = ledger[(ledger["stage"] == "registration") & (ledger["clip"] == "real")]
     assert sorted(rows["frame"]) == list(range(F)) and set(rows["reason_name"]) == {"NO_KEYPOINTS"}
+    assert not len(ledger[(ledger["stage"] == "retarget") & (ledger["clip"] == "real")])
     assert (root[Unit("qc", "real", embodiment=EMB).path]["status"][:] == Reason.UPSTREAM).all()

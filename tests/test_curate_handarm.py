@@ -61,38 +61,38 @@ def test_hand_arm_track(run):
     root = open_store(config.out)
     ret = root[Unit("retarget", clip, embodiment=EMB).path]
     names = list(get_kinematics(resolve_urdf(get_embodiment(EMB))).joint_names)
-    assert list(ret.attrs["joint_names"]) == names and ret["qpos"].shape == (T, len(names))
+    assert list(ret.attrs["joint_names"]) == names and ret["qpos"].shape == (T, 1, len(names))  # one hand
     status = ret["status"][:]
     assert (status != Reason.PENDING).all() and (status == Reason.OK).sum() >= T // 2, status
     # one base for the whole sequence: camera_from_base varies only with the camera (world-fixed base)
     src = root[Unit("ingest", clip).path]
-    world_from_base = np.einsum("tij,tjk->tik", src["world_from_camera"][:], ret["root_pose"][:])
+    world_from_base = np.einsum("tij,tjk->tik", src["world_from_camera"][:], ret["root_pose"][:, 0])
     np.testing.assert_allclose(world_from_base, np.broadcast_to(world_from_base[0], world_from_base.shape), atol=1e-6)
     np.testing.assert_allclose(world_from_base[0][:3, 2], [0, 0, 1], atol=1e-9)  # upright
     # the arm puts the hand's wrist link where the hand retargeting wanted it
     arm = arm_model(EMB)
-    q = ret["qpos"][:].astype(float)
+    q = ret["qpos"][:, 0].astype(float)
     lo, hi = arm.kin.lower, arm.kin.upper
     assert np.all(q >= np.where(np.isfinite(lo), lo, -np.inf) - 1e-6) and np.all(q <= np.where(np.isfinite(hi), hi, np.inf) + 1e-6)
     recs = read_records(root, Unit("retarget", clip, embodiment=EMB))
     assert sorted(recs) == [0] and (recs[0].start, recs[0].stop) == (0, T)  # one search for the sequence
-    vb = [recs[0].extra["virtual_base"]]
+    vb = [recs[0].extra["virtual_base"]["right"]]  # one base per hand; the synthetic clip has the right one
     assert len(vb[0]["candidates"]) == 27 and vb[0]["selected_by"] == "auto:top1"
     assert vb[0]["chosen"] == vb[0]["ranking"][0]
     assert all("reason_name" in c and "critical_success" in c for c in vb[0]["candidates"])
     # the top-3 candidates' egocentric and third-person previews are in the store
     from handedit.storage.store import read_previews
 
-    pv = read_previews(root, Unit("retarget", clip, embodiment=EMB))
+    pv = read_previews(root, Unit("retarget", clip, embodiment=EMB), "right")
     assert list(pv["candidates"]) == vb[0]["ranking"][:3] and list(pv["frames"]) == [0, T // 2, T - 1]
     assert (pv["ego"][..., 3] > 0).any(axis=(2, 3)).all() and (pv["third"][..., 3] > 0).any(axis=(2, 3)).all()
-    assert recs[0].extra["previews"]["previews/ego"]
+    assert recs[0].extra["previews"]["right"]["previews/ego"]
     ren = root[Unit("render", clip, embodiment=EMB).path]
     drawn = ren["status"][:] == Reason.OK
     assert drawn.any() and (ren["rgba"][:][drawn][..., 3] > 0).any(axis=(1, 2)).all()
     ledger = read_ledger(root)
     rows = ledger[(ledger["stage"] == "retarget") & (ledger["clip"] == clip)]
-    assert sorted(rows["frame"]) == list(np.flatnonzero(status >= 100))
+    assert sorted(rows["frame"]) == list(np.flatnonzero(ret["hand_status"][:, 0] >= 100))
 
 
 def test_review_choose_rerun_and_previews(run, dask_cluster, tmp_path, capsys):
@@ -102,8 +102,8 @@ def test_review_choose_rerun_and_previews(run, dask_cluster, tmp_path, capsys):
     out_dir = str(config.out)
     assert main(["review", out_dir]) == 0
     listing = capsys.readouterr().out
-    assert f"{clip} / {EMB}: chosen" in listing and "auto:top1" in listing
-    vb = read_records(open_store(config.out), Unit("retarget", clip, embodiment=EMB))[0].extra["virtual_base"]
+    assert f"{clip} / {EMB} / right: chosen" in listing and "auto:top1" in listing
+    vb = read_records(open_store(config.out), Unit("retarget", clip, embodiment=EMB))[0].extra["virtual_base"]["right"]
     assert len(vb["ranking"]) >= 2, "need two valid candidates to exercise a review"
     k = vb["ranking"][1]
     bad = next(i for i in range(27) if i not in vb["ranking"][:3])
@@ -116,8 +116,8 @@ def test_review_choose_rerun_and_previews(run, dask_cluster, tmp_path, capsys):
     again = run_curate(config)
     assert again["stages"]["retarget"]["ran"] == 1 and again["stages"]["ingest"]["ran"] == 0
     root = open_store(config.out)
-    rec = read_records(root, Unit("retarget", clip, embodiment=EMB))[0].extra["virtual_base"]
+    rec = read_records(root, Unit("retarget", clip, embodiment=EMB))[0].extra["virtual_base"]["right"]
     assert rec["chosen"] == k and rec["selected_by"] == f"review:{k}"
     ret = root[Unit("retarget", clip, embodiment=EMB).path]
-    world_from_base = root[Unit("ingest", clip).path]["world_from_camera"][0] @ ret["root_pose"][0]
+    world_from_base = root[Unit("ingest", clip).path]["world_from_camera"][0] @ ret["root_pose"][0, 0]
     np.testing.assert_allclose(world_from_base, rec["candidates"][k]["camera_from_base"], atol=1e-5)

@@ -77,7 +77,7 @@ def test_every_stage_runs_the_models_and_records_their_hashes(onnx_run):
     harm = root[Unit("harmonize", "clip", embodiment=EMB).path]["image"][:]
     comp = root[Unit("composite", "clip", embodiment=EMB).path]
     kept = qc == Reason.OK
-    robot = comp["robot_mask"][:][kept]
+    robot = comp["robot_mask"][:, 0][kept]
     assert robot.any() and (harm[kept][robot] != comp["image"][:][kept][robot]).any(), "harmonizer changed nothing"
 
 

@@ -23,13 +23,14 @@ class Done:
 def test_nodes_and_dependencies():
     nodes = build_nodes(CLIP, {"allegro": "hand", "ur5e_shadow": "hand_arm"}, frames_per_chunk=8, restore_window=3)
     by_id = {n.id: n for n in nodes}
-    # 3 chunks x (ingest, segment, 2 scopes, 5 hand stages, 4 hand-arm stages) + 1 sequence-level retarget
-    assert len(nodes) == 3 * (2 + 2 + 5 + 4) + 1
+    # 3 chunks x (ingest, registration, segment, 2 scopes, 5 hand stages, 4 hand-arm stages) + 1 sequence-level retarget
+    assert len(nodes) == 3 * (3 + 2 + 5 + 4) + 1
     seq = by_id[(Unit("retarget", "c", embodiment="ur5e_shadow"), 0)]
     assert (seq.start, seq.stop) == (0, 20) and {d.chunk for d in seq.deps} == {0, 1, 2}
     assert (Unit("retarget", "c", embodiment="ur5e_shadow"), 1) not in by_id
     render = by_id[(Unit("render", "c", embodiment="ur5e_shadow"), 2)]
     assert [(d.unit.stage, d.chunk) for d in render.deps] == [("retarget", 0)]
+    assert {(d.unit.stage, d.chunk) for d in seq.deps} == {(s, k) for s in ("ingest", "registration", "segment") for k in (0, 1, 2)}
     restore = by_id[(Unit("restore_background", "c", scope="hand"), 1)]
     assert restore.context["window"] == [5, 19]
     assert {(d.unit.stage, d.chunk) for d in restore.deps} == {(s, k) for s in ("ingest", "segment") for k in (0, 1, 2)}
@@ -37,7 +38,9 @@ def test_nodes_and_dependencies():
     assert {d.unit for d in comp.deps} >= {Unit("restore_background", "c", scope="hand_arm"), Unit("ingest", "c")}
     assert (comp.start, comp.stop) == (16, 20)
     qc = by_id[(Unit("qc", "c", embodiment="allegro"), 0)]
-    assert all(d.arrays == ("status",) for d in qc.deps) and len(qc.deps) == 7
+    assert len(qc.deps) == 8 and all(d.arrays[0] == "status" for d in qc.deps)
+    assert {d.unit.stage for d in qc.deps if "hand_status" in d.arrays} == {"registration", "segment", "retarget", "render",
+                                                                             "composite"}
 
 
 def run(nodes, stored, params=None, fail=(), prefail_stage=None):

@@ -31,7 +31,7 @@ def _frames(n=4, h=48, w=64, seed=0):
         frames[i, 15:35, x0:x0 + 16] = (220, 160, 120)  # a skin-red "hand" that moves
         masks[i, 15:35, x0:x0 + 16] = True
         kp[i] = np.stack(np.meshgrid(np.linspace(x0 + 2, x0 + 13, 7), np.linspace(17, 32, 3)), -1).reshape(-1, 2)
-    return frames, masks, kp, np.ones((n, 21), bool), base
+    return frames, masks, kp[:, None], np.ones((n, 1, 21), bool), base  # one hand
 
 
 def test_segmenter_drives_prompts_and_records_hash(tmp_path):
@@ -39,7 +39,7 @@ def test_segmenter_drives_prompts_and_records_hash(tmp_path):
     path = toy.make_segmenter(tmp_path / "seg.onnx")
     res = segment(frames, kp, valid, SegmentConfig(method="onnx", model_path=str(path)))
     assert (res.status == Reason.OK).all() and np.allclose(res.confidence, 0.9)
-    ious = [(a & b).sum() / (a | b).sum() for a, b in zip(res.hand_mask, masks)]
+    ious = [(a & b).sum() / (a | b).sum() for a, b in zip(res.hand_mask[:, 0], masks)]
     assert min(ious) > 0.9, ious
     assert (res.handarm_mask >= res.hand_mask).all()
     assert res.method.startswith("onnx:segmenter:seg.onnx@sha256:") and file_sha256(path)[:16] in res.method
@@ -53,7 +53,7 @@ def test_segmenter_fixed_size_low_score_blank_and_empty(tmp_path):
     res = segment(frames, kp, valid, SegmentConfig(method="onnx", model_path=str(path)))
     assert res.status[1] == Reason.BLANK_FRAME and res.status[2] == Reason.EMPTY_MASK
     assert res.status[0] == Reason.LOW_CONFIDENCE == res.status[3]  # 0.5 < the paper's 0.75
-    assert res.hand_mask[0].shape == masks[0].shape and (res.hand_mask[0] & masks[0]).sum() > 0.6 * masks[0].sum()
+    assert res.hand_mask[0, 0].shape == masks[0].shape and (res.hand_mask[0, 0] & masks[0]).sum() > 0.6 * masks[0].sum()
     ok = SegmentConfig(method="onnx", model_path=str(path), min_model_confidence=0.4)
     assert segment(frames[:1], kp[:1], valid[:1], ok).status[0] == Reason.OK
 

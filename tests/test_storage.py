@@ -59,11 +59,11 @@ def test_chunk_ranges_cover_clip_once():
 
 def test_arrays_chunked_per_writer_and_open_with_zarr_dask_xarray(root, tmp_path):
     unit = Unit("ingest", "c1")
-    create_unit(root, unit, 10, {"H": 8, "W": 6}, F, has_object=True, has_gt=True)
+    create_unit(root, unit, 10, {"H": 8, "W": 6, "S": 2}, F, has_object=True, has_gt=True)
     frames = root[unit.path]["frames"]
     assert frames.shape == (10, 8, 6, 3) and frames.chunks == (1, 8, 6, 3) and frames.shards == (F, 8, 6, 3)
     assert "zstd" in str(frames.compressors) and "bitshuffle" in str(frames.compressors)
-    assert root[unit.path]["keypoints"].chunks == (F, 21, 3)
+    assert root[unit.path]["keypoints"].chunks == (F, 2, 21, 3)  # a hand axis
     # two chunk-aligned writers fill disjoint files
     a = np.random.default_rng(0).integers(0, 255, (4, 8, 6, 3), dtype=np.uint8)
     b = np.random.default_rng(1).integers(0, 255, (4, 8, 6, 3), dtype=np.uint8)
@@ -80,19 +80,19 @@ def test_arrays_chunked_per_writer_and_open_with_zarr_dask_xarray(root, tmp_path
 
 def test_write_chunk_rejects_wrong_shapes(root):
     unit = Unit("segment", "c1")
-    create_unit(root, unit, 8, {"H": 4, "W": 4}, F)
+    create_unit(root, unit, 8, {"H": 4, "W": 4, "S": 1}, F)
     with pytest.raises(ValueError, match="segment"):
-        write_chunk(root, unit, 0, {"hand_mask": np.zeros((4, 5, 4), bool)})
+        write_chunk(root, unit, 0, {"hand_mask": np.zeros((4, 1, 5, 4), bool)})
     with pytest.raises(KeyError, match="no array"):
         write_chunk(root, unit, 0, {"bogus": np.zeros((4,))})
 
 
 def test_digest_changes_with_content(root):
     unit = Unit("segment", "c1")
-    create_unit(root, unit, 8, {"H": 4, "W": 4}, F)
-    d1 = write_chunk(root, unit, 0, {"confidence": np.zeros(4, np.float32)})
-    d2 = write_chunk(root, unit, 0, {"confidence": np.ones(4, np.float32)})
-    d3 = write_chunk(root, unit, 4, {"confidence": np.zeros(4, np.float32)})
+    create_unit(root, unit, 8, {"H": 4, "W": 4, "S": 1}, F)
+    d1 = write_chunk(root, unit, 0, {"confidence": np.zeros((4, 1), np.float32)})
+    d2 = write_chunk(root, unit, 0, {"confidence": np.ones((4, 1), np.float32)})
+    d3 = write_chunk(root, unit, 4, {"confidence": np.zeros((4, 1), np.float32)})
     assert d1["confidence"] != d2["confidence"] and d1["confidence"] == d3["confidence"]
 
 
@@ -103,7 +103,7 @@ def test_provenance_key_and_records(root):
     assert k1 != provenance_key("harmonize", 2, {"strength": 0.5}, {"a": "x"})
     assert k1 != provenance_key("harmonize", 1, {"strength": 0.5}, {"a": "y"})
     unit = Unit("harmonize", "c1", embodiment="allegro")
-    create_unit(root, unit, 8, {"H": 4, "W": 4}, F)
+    create_unit(root, unit, 8, {"H": 4, "W": 4, "S": 1}, F)
     rec = ChunkRecord("harmonize", 1, 4, 8, k1, 1, {"strength": 0.5}, {"a": "x"}, seconds=np.float64(0.5))
     write_records(root, unit, [rec])
     back = read_records(open_store(root.store.root, mode="r"), unit)[1]
@@ -121,13 +121,13 @@ def test_jsonable_handles_numpy_and_nan():
 
 def test_ledger_table_from_records(root):
     unit = Unit("segment", "c1")
-    create_unit(root, unit, 8, {"H": 4, "W": 4}, F)
+    create_unit(root, unit, 8, {"H": 4, "W": 4, "S": 1}, F)
     rec = ChunkRecord("segment", 0, 0, 4, "k", 1, {}, {},
                       rejections=[{"frame": 2, "reason": int(Reason.EMPTY_MASK), "detail": "empty"}])
     write_records(root, unit, [rec])
     root.attrs.update({"clips": {"bad": {"error": "bad.mp4: cannot decode", "reason": int(Reason.SOURCE_UNREADABLE)}}})
     ledger = read_ledger(root)
-    assert list(ledger.columns) == ["stage", "clip", "scope", "embodiment", "frame", "reason", "reason_name", "detail"]
+    assert list(ledger.columns) == ["stage", "clip", "scope", "embodiment", "side", "frame", "reason", "reason_name", "detail"]
     rows = ledger.to_dict(orient="records")
     assert {"stage": "segment", "clip": "c1", "frame": 2, "reason_name": "EMPTY_MASK"}.items() <= rows[1].items()
     assert rows[0]["frame"] == -1 and rows[0]["reason_name"] == "SOURCE_UNREADABLE"
@@ -150,9 +150,9 @@ def test_store_open_errors(tmp_path):
 
 def test_recreated_array_drops_provenance(root):
     unit = Unit("retarget", "c1", embodiment="e")
-    create_unit(root, unit, 8, {"dof": 16}, F)
+    create_unit(root, unit, 8, {"dof": 16, "S": 1}, F)
     write_records(root, unit, [ChunkRecord("retarget", 0, 0, 4, "k", 1, {}, {})])
-    create_unit(root, unit, 8, {"dof": 16}, F)  # same shapes: records kept
+    create_unit(root, unit, 8, {"dof": 16, "S": 1}, F)  # same shapes: records kept
     assert read_records(root, unit)
-    create_unit(root, unit, 8, {"dof": 22}, F)  # new DoF: empty array, nothing is current
-    assert root[unit.path]["qpos"].shape == (8, 22) and read_records(root, unit) == {}
+    create_unit(root, unit, 8, {"dof": 22, "S": 1}, F)  # new DoF: empty array, nothing is current
+    assert root[unit.path]["qpos"].shape == (8, 1, 22) and read_records(root, unit) == {}

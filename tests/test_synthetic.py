@@ -52,8 +52,8 @@ def test_chunk_shapes_and_types(clip):
     n, H, W = spec.n_frames, spec.height, spec.width
     assert c.frames.shape == (n, H, W, 3) and c.frames.dtype == np.uint8
     assert c.world_from_camera.shape == (n, 4, 4)
-    assert c.keypoints.shape == (n, 21, 3) and c.keypoints.dtype == np.float32
-    assert c.keypoints_valid.shape == (n, 21) and c.keypoints_valid.dtype == bool
+    assert c.keypoints.shape == (n, 1, 21, 3) and c.keypoints.dtype == np.float32
+    assert c.keypoints_valid.shape == (n, 1, 21) and c.keypoints_valid.dtype == bool
     assert c.frame_ok.all() and c.object_pose.shape == (n, 4, 4)
     assert c.gt["background"].shape == (n, H, W, 3) and c.gt["background"].dtype == np.uint8
     for k in ("hand_mask", "handarm_mask"):
@@ -102,9 +102,9 @@ def test_keypoints_project_onto_the_hand(clip):
     hits = total = 0
     for i in range(c.n):
         dist = cv2.distanceTransform((~c.gt["handarm_mask"][i]).astype(np.uint8), cv2.DIST_L2, 3)
-        uv = project(c.keypoints[i], intr)
+        uv = project(c.keypoints[:, 0][i], intr)
         for j in (WRIST, *FINGERTIPS, *MCPS):
-            if not c.keypoints_valid[i, j]:
+            if not c.keypoints_valid[:, 0][i, j]:
                 continue
             u, v = np.round(uv[j]).astype(int)
             if not (0 <= u < spec.width and 0 <= v < spec.height):
@@ -118,7 +118,7 @@ def test_keypoints_project_onto_the_hand(clip):
 
 def test_camera_is_an_upright_head_camera(clip):
     _, c = clip
-    for T, kp in zip(c.world_from_camera, c.keypoints):
+    for T, kp in zip(c.world_from_camera, c.keypoints[:, 0]):
         assert T[2, 1] < -0.3  # image "down" points down in the world
         assert T[2, 2] < -0.4  # looking down at the table
         height = T[2, 3]
@@ -133,7 +133,7 @@ def test_object_is_lifted_with_the_hand(clip):
     z = np.array([T[2, 3] for T in obj_world])
     assert z[-1] - z[0] > 0.06
     assert np.allclose(z[: c.n // 2], z[0], atol=1e-9)  # still on the table before the lift
-    wrist = np.array([_world(c, c.keypoints[i, WRIST], i) for i in range(c.n)])
+    wrist = np.array([_world(c, c.keypoints[:, 0][i, WRIST], i) for i in range(c.n)])
     assert wrist[-1, 2] - wrist[c.n // 2, 2] > 0.06
     # after the grasp the wrist stays fixed in the object frame (rigid lift)
     last = c.n - 1
@@ -151,7 +151,7 @@ def test_fingertips_end_on_the_object(seed):
     c = src.read(start, spec.n_frames)
     for i in range(c.n):
         obj_from_cam = np.linalg.inv(c.object_pose[i])
-        tips = c.keypoints[i, list(FINGERTIPS)] @ obj_from_cam[:3, :3].T + obj_from_cam[:3, 3]
+        tips = c.keypoints[:, 0][i, list(FINGERTIPS)] @ obj_from_cam[:3, :3].T + obj_from_cam[:3, 3]
         _, dist, _ = trimesh.proximity.closest_point(mesh, tips)
         assert dist.max() < 0.02, f"seed {seed} frame {start + i}: tip distances {dist}"
         assert mesh.contains(tips).sum() == 0  # touching, not inside
@@ -159,7 +159,7 @@ def test_fingertips_end_on_the_object(seed):
 
 def test_hand_has_human_proportions(clip):
     _, c = clip
-    kp = c.keypoints[0].astype(float)
+    kp = c.keypoints[0, 0].astype(float)
     bone = lambda a, b: np.linalg.norm(kp[a] - kp[b])  # noqa: E731
     middle = bone(0, 9) + sum(bone(a, b) for a, b in zip(FINGERS["middle"], FINGERS["middle"][1:]))
     assert 0.175 < middle < 0.195  # wrist to middle fingertip along the bones

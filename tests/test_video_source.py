@@ -73,7 +73,7 @@ def test_real_video_read_matches_sequential_decode(real_src, real_video):
 
 def test_real_video_no_keypoints(real_src):
     c = real_src.read(10, 12)
-    assert c.keypoints.shape == (2, 21, 3) and not c.keypoints_valid.any() and not c.keypoints.any()
+    assert c.keypoints.shape == (2, 1, 21, 3) and not c.keypoints_valid.any() and not c.keypoints.any()
     np.testing.assert_array_equal(c.world_from_camera, np.tile(np.eye(4), (2, 1, 1)))
     assert c.object_mask is None and c.object_pose is None
     assert real_src.object_mesh() is None
@@ -166,9 +166,10 @@ def test_keypoints_npy_and_npz(small_avi, tmp_path):
     info = src.info()
     assert info.has_keypoints and info.meta["intrinsics_origin"].startswith("default")
     c = src.read(2, 5)
-    assert c.keypoints_valid.sum() == 3 * 21 - 1 and not c.keypoints_valid[1, 4]
-    assert np.all(c.keypoints[1, 4] == 0)
-    np.testing.assert_allclose(c.keypoints[0], kp[2])
+    assert c.keypoints_valid.sum() == 3 * 21 - 1 and not c.keypoints_valid[1, 0, 4]
+    assert np.all(c.keypoints[1, 0, 4] == 0)
+    np.testing.assert_allclose(c.keypoints[0, 0], kp[2])
+    assert info.hands == ("right",)
 
     valid = np.ones((20, 21), bool)
     valid[:, 0] = False
@@ -178,8 +179,15 @@ def test_keypoints_npy_and_npz(small_avi, tmp_path):
     src = VideoSpec(path=small_avi, keypoints_path=npz).open()
     info = src.info()
     assert info.meta["intrinsics_origin"] == "keypoints_file:K" and info.intrinsics.fy == 210.0
-    assert not src.read(0, 20).keypoints_valid[:, 0].any()
+    assert not src.read(0, 20).keypoints_valid[:, 0, 0].any()
     assert info.fingerprint != VideoSpec(path=small_avi, keypoints_path=npy).open().info().fingerprint
+
+    two = tmp_path / "two.npz"  # two hands, named; stored in (left, right) order
+    np.savez(two, keypoints=np.stack([kp, kp + 0.01], axis=1), hands=np.array(["right", "left"]))
+    src = VideoSpec(path=small_avi, keypoints_path=two).open()
+    assert src.info().hands == ("left", "right")
+    np.testing.assert_allclose(src.read(0, 1).keypoints[0, 0], kp[0] + 0.01)
+    np.testing.assert_allclose(VideoSpec(path=small_avi, keypoints_path=npy, hand="left").open().read(0, 1).keypoints[0, 0], kp[0])
 
 
 def _bad_keypoint_files(tmp_path: Path) -> list[Path]:
@@ -199,6 +207,7 @@ def _bad_keypoint_files(tmp_path: Path) -> list[Path]:
     save("nokey.npz", joints=np.zeros((20, 21, 3)))
     save("badvalid.npz", keypoints=np.zeros((20, 21, 3)), valid=np.ones((20, 20), bool))
     save("badK.npz", keypoints=np.zeros((20, 21, 3)), K=np.eye(2))
+    save("unnamed.npz", keypoints=np.zeros((20, 2, 21, 3)))  # two hands, not named
     junk = tmp_path / "junk.npy"
     junk.write_bytes(b"not a numpy file at all")
     files.append(junk)

@@ -130,7 +130,8 @@ def test_shoulder_initialisation(assets):
     arm = arm_model(EMB)
     left, right = np.array([-0.2, 0.3, 0.0]), np.array([0.2, 0.3, 0.0])
     T0 = initial_base(targets, np.ones(3, bool), UP, arm.reach, CFG, np.stack([left, right]), arm.shoulder)
-    np.testing.assert_allclose(T0[:3, :3] @ arm.shoulder + T0[:3, 3], right, atol=1e-9)  # first joint at the shoulder
+    # first joint below the human shoulder (by init_shoulder_drop x L_r)
+    np.testing.assert_allclose(T0[:3, :3] @ arm.shoulder + T0[:3, 3], right - CFG.init_shoulder_drop * arm.reach * UP, atol=1e-9)
     np.testing.assert_allclose(T0[:3, 2], UP, atol=1e-12)
     fwd = targets[:, :3, 3].mean(0) - (left + right) / 2
     fwd -= (fwd @ UP) * UP

@@ -130,13 +130,21 @@ def scene():
     return _scene()
 
 
+def one(r):
+    """A one-hand segmentation result with its hand axis dropped (masks (n,H,W), confidence (n,))."""
+    import dataclasses
+
+    return dataclasses.replace(r, hand_mask=r.hand_mask[:, 0], handarm_mask=r.handarm_mask[:, 0],
+                               confidence=r.confidence[:, 0], hand_status=r.hand_status[:, 0])
+
+
 # ---------------------------------------------------------------------------------------
 # segmentation
 
 
 def test_segment_with_keypoints(scene):
     _, frames, kps, hand_gt, arm_gt = scene
-    r = segment(frames, kps, np.ones(kps.shape[:2], bool), SegmentConfig())
+    r = one(segment(frames, kps[:, None], np.ones(kps.shape[:2], bool)[:, None], SegmentConfig()))
     assert r.method == "classical:grabcut+skin"
     assert r.hand_mask.shape == frames.shape[:3] and r.hand_mask.dtype == bool
     assert (r.status == Reason.OK).all() and r.status.dtype == np.int16
@@ -149,8 +157,8 @@ def test_segment_with_keypoints(scene):
 
 def test_segment_without_keypoints_lower_confidence(scene):
     _, frames, kps, hand_gt, arm_gt = scene
-    with_kp = segment(frames, kps, np.ones(kps.shape[:2], bool))
-    r = segment(frames, None, None)
+    with_kp = one(segment(frames, kps[:, None], np.ones(kps.shape[:2], bool)[:, None]))
+    r = one(segment(frames, None, None))
     assert r.method.startswith("classical:skin")
     for i in range(len(frames)):
         assert _iou(r.handarm_mask[i], arm_gt[i]) > IOU_NOKP_HANDARM
@@ -165,7 +173,7 @@ def test_segment_partial_keypoints_and_statuses(scene):
     valid[[1, 3]] = False  # frame 1: no keypoints -> skin model fallback
     frames[2] = 77  # blank
     frames[3] = bg  # nothing skin-coloured
-    r = segment(frames, kps[:4], valid)
+    r = one(segment(frames, kps[:4, None], valid[:, None]))
     assert list(r.status) == [Reason.OK, Reason.OK, Reason.BLANK_FRAME, Reason.EMPTY_MASK]
     assert "|" in r.method
     assert _iou(r.handarm_mask[1], arm_gt[1]) > IOU_NOKP_HANDARM
@@ -176,8 +184,8 @@ def test_segment_partial_keypoints_and_statuses(scene):
 def test_segment_wrong_keypoints_low_confidence(scene):
     """Keypoints where there is no hand: seeds make a mask, the confidence proxy flags it."""
     bg, frames, kps, _, _ = scene
-    good = segment(frames, kps, np.ones(kps.shape[:2], bool))
-    r = segment(np.repeat(bg[None], len(frames), 0), kps, np.ones(kps.shape[:2], bool))
+    good = one(segment(frames, kps[:, None], np.ones(kps.shape[:2], bool)[:, None]))
+    r = one(segment(np.repeat(bg[None], len(frames), 0), kps[:, None], np.ones(kps.shape[:2], bool)[:, None]))
     assert (r.status == Reason.LOW_CONFIDENCE).all()
     assert (r.confidence < good.confidence - 0.3).all()
 
@@ -189,7 +197,7 @@ def test_segment_real_video(real_video):
     src = VideoSpec(path=real_video).open()
     idx = [0, 80, 160, 240, 320, 400, 480, 560]
     frames = np.stack([cv2.resize(src.read(i, i + 1).frames[0], (640, 360), interpolation=cv2.INTER_AREA) for i in idx])
-    r = segment(frames, None, None)
+    r = one(segment(frames, None, None))
     rows = []
     for f, a, h in zip(frames, r.handarm_mask, r.hand_mask):
         ov = f.astype(np.float32)
@@ -278,7 +286,7 @@ def test_composite_occluder_in_front_keeps_background_exactly():
     r = composite(bg, rgba, depth, occ, occ_depth)
     overlap = occ & (depth > 0)
     np.testing.assert_array_equal(r.image[overlap], bg[overlap])
-    assert not r.robot_mask[overlap].any()
+    assert not r.robot_mask[:, 0][overlap].any()
     interior = np.zeros_like(occ)
     interior[:, 23:37, 23:37] = True  # away from edges: pure robot colour
     assert (r.image[interior] == (200, 40, 40)).all()

@@ -6,6 +6,9 @@
     handedit review DIR --clip C --embodiment E --choose K       pick top-3 candidate K
     handedit review DIR --clip C --embodiment E --drop           no plausible candidate: drop the sequence
 
+Each hand of a bimanual clip has its own arm and base: ``--side left|right`` picks one
+(default: the clip's only hand).
+
 The default policy (``auto_top1``) already picked the best-ranked candidate and says so
 in provenance (``selected_by``). A decision is stored in the store's ``reviews`` attribute
 and the sequence's retarget records are cleared, so the next ``handedit curate`` run
@@ -22,7 +25,8 @@ from pathlib import Path
 REVIEWS_ATTR = "reviews"
 
 
-def _summaries(root, clip: str | None = None, emb: str | None = None) -> dict[tuple[str, str], dict]:
+def _summaries(root, clip: str | None = None, emb: str | None = None,
+               side: str | None = None) -> dict[tuple[str, str, str], dict]:
     from handedit.storage import Unit, read_records
 
     out = {}
@@ -33,9 +37,10 @@ def _summaries(root, clip: str | None = None, emb: str | None = None) -> dict[tu
             if emb and e != emb:
                 continue
             recs = read_records(root, Unit("retarget", c, embodiment=e))
-            vb = next((r.extra.get("virtual_base") for r in recs.values() if r.extra.get("virtual_base")), None)
-            if vb:
-                out[(c, e)] = vb
+            per_side = next((r.extra.get("virtual_base") for r in recs.values() if r.extra.get("virtual_base")), None) or {}
+            for s, vb in sorted(per_side.items()):
+                if side is None or s == side:
+                    out[(c, e, s)] = vb
     return out
 
 
@@ -61,17 +66,22 @@ def cmd_review(args: argparse.Namespace) -> int:
         print("error: --choose/--drop/--previews need --clip and --embodiment", file=sys.stderr)
         return 2
     root = open_store(path, mode="r+" if deciding else "r")
-    found = _summaries(root, args.clip, args.embodiment)
+    found = _summaries(root, args.clip, args.embodiment, args.side)
+    if (deciding or args.previews) and len(found) > 1:
+        sides = sorted({k[2] for k in found})
+        print(f"error: {args.clip}/{args.embodiment} has one arm per hand ({', '.join(sides)}); pass --side", file=sys.stderr)
+        return 2
     reviews = dict(root.attrs.get(REVIEWS_ATTR) or {})
     if not found:
         print(f"error: no hand-arm sequence with virtual-base candidates in {path}"
               + (f" for {args.clip}/{args.embodiment}" if args.clip else ""), file=sys.stderr)
         return 2
     if not deciding:
-        for (c, e), vb in found.items():
+        for (c, e, sd), vb in found.items():
             top = vb["ranking"][:3]
-            print(f"{c} / {e}: chosen {vb['chosen']} ({vb['selected_by']}), top-3 {top}, L_r {vb['reach_m']:.3f} m"
-                  + (f"  review: {reviews[f'{c}/{e}']}" if f"{c}/{e}" in reviews else "")
+            key = f"{c}/{e}/{sd}"
+            print(f"{c} / {e} / {sd}: chosen {vb['chosen']} ({vb['selected_by']}), top-3 {top}, L_r {vb['reach_m']:.3f} m"
+                  + (f"  review: {reviews[key]}" if key in reviews else "")
                   + (f"  REJECTED: {vb['detail']}" if vb["chosen"] is None else ""))
             cands = vb["candidates"] if args.clip else [vb["candidates"][i] for i in top]
             for cand in cands:
@@ -81,19 +91,19 @@ def cmd_review(args: argparse.Namespace) -> int:
         if args.previews:
             return _write_previews(root, args, found)
         return 0
-    (c, e), vb = next(iter(found.items()))
+    (c, e, sd), vb = next(iter(found.items()))
     if args.drop:
         choice = -1
     else:
         if args.choose not in vb["ranking"][:3]:
             print(f"error: candidate {args.choose} is not one of the top-3 valid candidates {vb['ranking'][:3]} "
-                  f"of {c}/{e}", file=sys.stderr)
+                  f"of {c}/{e}/{sd}", file=sys.stderr)
             return 2
         choice = args.choose
-    reviews[f"{c}/{e}"] = {"choice": choice, "by": "operator", "at": now_iso()}
+    reviews[f"{c}/{e}/{sd}"] = {"choice": choice, "by": "operator", "at": now_iso()}
     set_attrs(root, "", {REVIEWS_ATTR: reviews})
     set_attrs(root, Unit("retarget", c, embodiment=e).path, {PROVENANCE_ATTR: {}})  # re-solve on the next run
-    print(f"{c}/{e}: {'dropped' if choice == -1 else f'candidate {choice}'}; re-run `handedit curate` to apply")
+    print(f"{c}/{e}/{sd}: {'dropped' if choice == -1 else f'candidate {choice}'}; re-run `handedit curate` to apply")
     return 0
 
 
@@ -105,10 +115,10 @@ def _write_previews(root, args, found) -> int:
     from handedit.storage import Unit
     from handedit.storage.store import read_previews
 
-    (c, e), vb = next(iter(found.items()))
-    pv = read_previews(root, Unit("retarget", c, embodiment=e))
+    (c, e, sd), vb = next(iter(found.items()))
+    pv = read_previews(root, Unit("retarget", c, embodiment=e), sd)
     if len(pv["candidates"]) == 0:
-        print(f"error: no previews stored for {c}/{e} (no valid candidate, or not curated yet)", file=sys.stderr)
+        print(f"error: no previews stored for {c}/{e}/{sd} (no valid candidate, or not curated yet)", file=sys.stderr)
         return 2
     out = Path(args.previews)
     out.mkdir(parents=True, exist_ok=True)
@@ -117,8 +127,8 @@ def _write_previews(root, args, found) -> int:
         for j, f in enumerate(pv["frames"]):
             rgba = pv["ego"][i, j].astype(float) / 255
             over = (frames_rgb[f] * (1 - rgba[..., 3:]) + 255 * rgba[..., :3] * rgba[..., 3:]).astype(np.uint8)
-            cv2.imwrite(str(out / f"{c}_{e}_cand{cand}_ego_f{f:05d}.png"), cv2.cvtColor(over, cv2.COLOR_RGB2BGR))
-            cv2.imwrite(str(out / f"{c}_{e}_cand{cand}_third_f{f:05d}.png"), cv2.cvtColor(pv["third"][i, j], cv2.COLOR_RGBA2BGRA))
+            cv2.imwrite(str(out / f"{c}_{e}_{sd}_cand{cand}_ego_f{f:05d}.png"), cv2.cvtColor(over, cv2.COLOR_RGB2BGR))
+            cv2.imwrite(str(out / f"{c}_{e}_{sd}_cand{cand}_third_f{f:05d}.png"), cv2.cvtColor(pv["third"][i, j], cv2.COLOR_RGBA2BGRA))
     print(f"previews of candidates {list(pv['candidates'])} -> {out}")
     return 0
 
@@ -128,6 +138,7 @@ def register(subparsers) -> None:
     p.add_argument("dir", help="run folder (or .zarr store)")
     p.add_argument("--clip")
     p.add_argument("--embodiment")
+    p.add_argument("--side", choices=["left", "right"], help="which hand's arm (bimanual clips)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--choose", type=int, help="candidate index among the top-3")
     g.add_argument("--drop", action="store_true", help="no plausible candidate: exclude the sequence")

@@ -101,7 +101,8 @@ def _call(model, img: np.ndarray, pts: np.ndarray, labels: np.ndarray, box: np.n
 
 
 def segment_onnx(frames: np.ndarray, kp2d: np.ndarray, kval: np.ndarray, cfg) -> "SegmentResult":  # noqa: F821
-    """``segment`` with a model (``cfg.method == "onnx"``); same result type and statuses."""
+    """``segment`` of one hand with a model (``cfg.method == "onnx"``); same result type and
+    statuses, hand axis of size 1 (``segment`` calls it once per hand)."""
     from handedit.vision.segment import SegmentResult, _forearm_dir
 
     model = load_model(cfg.model_path, CONTRACT)
@@ -137,4 +138,5 @@ def segment_onnx(frames: np.ndarray, kp2d: np.ndarray, kval: np.ndarray, cfg) ->
             hand[i] = arm[i] = False
         elif conf[i] < cfg.min_model_confidence:
             status[i] = Reason.LOW_CONFIDENCE
-    return SegmentResult(hand, arm, conf, status, f"onnx:segmenter:{model.tag}")
+    # one hand (the one the prompts point at): hand axis of size 1
+    return SegmentResult(hand[:, None], arm[:, None], conf[:, None], status[:, None], status, f"onnx:segmenter:{model.tag}")

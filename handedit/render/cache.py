@@ -57,15 +57,20 @@ def embodiment_renderer(
     height: int,
     decimate: float | None = None,
     materials: dict | None = None,
+    side: str = "right",
 ) -> RobotRenderer:
-    """This thread's cached renderer of a registered embodiment (hand-arm: the composed URDF).
+    """This thread's cached renderer of a registered embodiment (hand-arm: the composed URDF;
+    ``side="left"``: its mirror image, ``handedit.embodiments.mirror``).
 
     Colours: the roster's (``embodiments.render_materials``) unless ``materials`` (link regex ->
     RGBA) overrides them; overrides are tried first, the roster's apply to the other links."""
     from handedit import embodiments
+    from handedit.embodiments.mirror import mirror_urdf
 
     emb = embodiments.get_embodiment(embodiment_id)
     urdf_path = embodiments.resolve_urdf(emb)
+    if side == "left":
+        urdf_path = mirror_urdf(urdf_path)
     merged = {**(materials or {}), **embodiments.render_materials(emb)}
     key = tuple((k, tuple(v)) for k, v in merged.items()) if merged else None
     return get_renderer(Path(urdf_path), width, height, key, decimate)
@@ -78,8 +83,9 @@ def render_embodiment(
     intrinsics: Intrinsics,
     decimate: float | None = None,
     materials: dict | None = None,
+    side: str = "right",
 ) -> RenderResult:
     """Render a registered embodiment: URDF and materials come from ``handedit.embodiments``;
     ``root_pose`` is camera_from_root of the URDF root (hand-arm: the arm base)."""
-    renderer = embodiment_renderer(embodiment_id, intrinsics.width, intrinsics.height, decimate, materials)
+    renderer = embodiment_renderer(embodiment_id, intrinsics.width, intrinsics.height, decimate, materials, side)
     return renderer.render(qpos, root_pose, intrinsics)

@@ -25,17 +25,41 @@ class RenderConfig(BaseModel):
 
 @dataclass
 class RenderStageResult:
-    rgba: np.ndarray  # (n,H,W,4) uint8
+    rgba: np.ndarray  # (n,H,W,4) uint8: every side's robot, nearest surface per pixel
     depth: np.ndarray  # (n,H,W) float32
-    status: np.ndarray  # (n,) int16
+    robot_side: np.ndarray  # (n,H,W) uint8: 0 no robot, k+1 the robot of hand k
+    hand_status: np.ndarray  # (n,S) int16
+    status: np.ndarray  # (n,) int16 (OK where any side rendered)
     method: str
 
 
-def render_stage(embodiment_id: str, qpos: np.ndarray, root_pose: np.ndarray, intr: Intrinsics, cfg: RenderConfig) -> RenderStageResult:
-    from handedit.render import render_embodiment  # deferred: pyrender/EGL only where rendering happens
+def render_stage(embodiment_id: str, qpos: np.ndarray, root_pose: np.ndarray, ready: np.ndarray, sides: tuple[str, ...],
+                 intr: Intrinsics, cfg: RenderConfig) -> RenderStageResult:
+    """Both robots in one frame: each side rendered with its URDF (left: the mirrored one),
+    then merged by depth, so the nearer robot occludes the other exactly per pixel.
 
-    out = render_embodiment(embodiment_id, qpos, root_pose, intr, decimate=cfg.decimate, materials=cfg.materials)
-    visible = (out.rgba[..., 3] > 0).reshape(len(qpos), -1).sum(axis=1)
-    status = np.where(visible >= cfg.min_visible_pixels, Reason.OK, Reason.EMPTY_RENDER).astype(np.int16)
+    qpos (n,S,dof), root_pose (n,S,4,4), ready (n,S): sides to render (others UPSTREAM)."""
+    from handedit.render import render_embodiment  # deferred: pyrender/EGL only where rendering happens
+    from handedit.reasons import per_frame
+
+    n, S = np.asarray(ready).shape
+    H, W = intr.height, intr.width
+    rgba = np.zeros((n, H, W, 4), np.uint8)
+    depth = np.zeros((n, H, W), np.float32)
+    side_of = np.zeros((n, H, W), np.uint8)
+    hs = np.full((n, S), Reason.UPSTREAM, np.int16)
+    for k, side in enumerate(sides):
+        idx = np.flatnonzero(ready[:, k])
+        if not idx.size:
+            continue
+        out = render_embodiment(embodiment_id, qpos[idx, k], root_pose[idx, k], intr, decimate=cfg.decimate,
+                                materials=cfg.materials, side=side)
+        d = out.depth
+        mine = (d > 0) & ((depth[idx] <= 0) | (d < depth[idx]))
+        for j, i in enumerate(idx):
+            m = mine[j]
+            rgba[i][m], depth[i][m], side_of[i][m] = out.rgba[j][m], d[j][m], k + 1
+        visible = (out.rgba[..., 3] > 0).reshape(len(idx), -1).sum(axis=1)
+        hs[idx, k] = np.where(visible >= cfg.min_visible_pixels, Reason.OK, Reason.EMPTY_RENDER)
     method = f"pyrender:egl{'' if cfg.decimate is None else f':decimate={cfg.decimate}'}"
-    return RenderStageResult(out.rgba, out.depth, status, method)
+    return RenderStageResult(rgba, depth, side_of, hs, per_frame(hs), method)

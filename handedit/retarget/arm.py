@@ -110,6 +110,9 @@ class ArmModel:
         # the wrist + hand group for self-collision: hand points, palm centre, last two arm points
         self.distal = self.moving & ~self.arm_points
         self.distal[np.flatnonzero(self.arm_points)[-2:]] = True
+        # the arm without its wrist end (which must reach the hand wherever it is): what has
+        # to keep clear of the head
+        self.proximal = self.arm_points & ~self.distal
 
         p_t, R_t, q_prev = ca.SX.sym("p_t", 3), ca.SX.sym("R_t", 3, 3), ca.SX.sym("q_prev", self.n)
         w_s = ca.SX.sym("w_s")

@@ -9,10 +9,14 @@ from pydantic import BaseModel, ConfigDict, Field
 
 class VirtualBaseConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
-    VERSION: ClassVar[int] = 1
+    VERSION: ClassVar[int] = 2
 
     init_back: float = Field(0.55, description="base distance behind the wrist centre, in L_r")
     init_up: float = Field(0.10, description="base height above the wrist centre, in L_r")
+    init_shoulder_drop: float = Field(0.25, description="with shoulder keypoints: the arm's first joint this far below the "
+                                      "human shoulder, in L_r (a robot shoulder at head height would fill the view)")
+    camera_clearance_m: float = Field(0.06, ge=0, description="an arm link closer than this to the camera (through the head camera) "
+                                      "is a collision")
     pos_tol_mm: float = Field(10.0, gt=0, description="IK position error above which a frame is infeasible")
     rot_tol_deg: float = Field(5.0, gt=0)
     link_radius: float = Field(0.035, gt=0, description="capsule radius of arm links (m)")

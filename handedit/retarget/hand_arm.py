@@ -6,10 +6,12 @@
 3. the virtual base is searched once for the sequence (``virtual_base``) and the chosen
    candidate's IK trajectory becomes the arm joints; finger joints come from step 1.
 
-Reference frame: when the source gives camera poses in a world whose z=0 plane is the
-support surface (the synthetic source's table), the base is fixed in that world and the
-support-plane check runs; with identity (unknown) camera poses the base is fixed in the
-camera frame, "up" is image up and the support-plane check is recorded as not possible.
+Reference frame: when the source gives camera poses in a world (``ClipInfo.world``: its up
+direction and, where known, its support plane, e.g. the synthetic table's z = 0), the base
+is fixed in that world, upright along its up, and the support-plane check runs where the
+plane is known; without a world (identity camera poses) the base is fixed in the camera
+frame, "up" is image up and the support-plane check is recorded as not possible. Shoulder
+keypoints (EgoDex tracks them) initialise the search (the paper's first branch).
 
 Outputs follow the composed URDF: qpos columns in its joint order, ``root_pose`` is
 camera_from_base per frame. The curate flow runs this once per (clip, embodiment): the
@@ -51,38 +53,49 @@ class HandArmResult:
                 "candidates": vb.scores_json()}
 
 
-def _known_world(world_from_camera: np.ndarray | None) -> bool:
-    return world_from_camera is not None and not np.allclose(world_from_camera, np.eye(4))
+def known_world(world: dict | None, world_from_camera: np.ndarray | None) -> bool:
+    return world is not None and world_from_camera is not None
 
 
 def retarget_hand_arm(keypoints: np.ndarray, keypoints_valid: np.ndarray, embodiment_id: str, cfg: RetargetConfig,
                       vb_cfg: VirtualBaseConfig | None = None, world_from_camera: np.ndarray | None = None,
-                      choice: int | None = None) -> HandArmResult:
+                      choice: int | None = None, world: dict | None = None,
+                      shoulders: np.ndarray | None = None) -> HandArmResult:
     """Whole-sequence hand-arm retargeting (see module doc). ``choice``: an operator's
-    candidate index (``handedit review``), -1 to drop the sequence, None for the policy."""
+    candidate index (``handedit review``), -1 to drop the sequence, None for the policy.
+    ``world``: ``ClipInfo.world`` (None: no world frame); ``shoulders`` (2,3): the
+    (left, right) shoulder joints in the camera frame of the first frame, or None."""
     kp = np.ascontiguousarray(keypoints, dtype=np.float32)
     va = np.ascontiguousarray(keypoints_valid, dtype=bool)
     wfc = None if world_from_camera is None else np.ascontiguousarray(world_from_camera, dtype=np.float64)
-    return _solve(embodiment_id, cfg, vb_cfg or cfg.virtual_base, choice, kp, va, wfc)
+    return _solve(embodiment_id, cfg, vb_cfg or cfg.virtual_base, choice, kp, va, wfc, world, shoulders)
 
 
 def _solve(embodiment_id: str, cfg: RetargetConfig, vb_cfg: VirtualBaseConfig, choice,
-           kp, va, wfc) -> HandArmResult:
+           kp, va, wfc, world_desc: dict | None = None, shoulders: np.ndarray | None = None) -> HandArmResult:
     arm = arm_model(embodiment_id)
     n = len(kp)
     hand = retarget(kp, va, arm.hand_id, cfg)
     ok = hand.status == Reason.OK
     targets = arm.wrist_targets(hand.root_pose, hand.qpos.astype(float))
     notes: list[str] = []
-    world = _known_world(wfc)
+    world = known_world(world_desc, wfc)
     if world:
         targets = np.einsum("tij,tjk->tik", wfc, targets)
-        up, plane = np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 1.0, 0.0])
+        up = np.asarray(world_desc["up"], float)
+        plane = None if world_desc.get("support_plane") is None else np.asarray(world_desc["support_plane"], float)
+        if shoulders is not None:
+            shoulders = np.asarray(shoulders, float) @ wfc[0][:3, :3].T + wfc[0][:3, 3]
+        if plane is None:
+            notes.append("support-plane check not possible: the source's world has no support plane")
     else:
         up, plane = np.array([0.0, -1.0, 0.0]), None
         notes.append("support-plane check not possible: the source gives no world frame; base fixed in the camera frame")
-    notes.append("dual-arm check not applicable: one hand per sequence")
-    vb = search_virtual_base(targets, ok, embodiment_id, vb_cfg, up=up, support_plane=plane)
+    notes.append("base initialised from the shoulders" if shoulders is not None else
+                 "base initialised from the wrist trajectory and the arm's reach (no shoulder keypoints)")
+    cameras = wfc[:, :3, 3] if world else np.zeros((n, 3))
+    vb = search_virtual_base(targets, ok, embodiment_id, vb_cfg, up=up, support_plane=plane, shoulders=shoulders,
+                             cameras=cameras)
     if choice is not None and vb.reason == Reason.OK:
         try:
             vb = apply_review(vb, choice, arm)

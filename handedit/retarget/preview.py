@@ -24,8 +24,10 @@ def third_person_camera(camera_from_base: np.ndarray, hand_points: np.ndarray, u
 
 
 def render_previews(res: HandArmResult, intr: Intrinsics, candidates: list[int] | None = None,
-                    frames: list[int] | None = None, world_from_camera: np.ndarray | None = None) -> dict[int, dict[str, np.ndarray]]:
-    """candidate -> {"ego": (n,H,W,4) uint8, "third": (n,H,W,4) uint8} for the top-3 by default."""
+                    frames: list[int] | None = None, world_from_camera: np.ndarray | None = None,
+                    up: np.ndarray | None = None) -> dict[int, dict[str, np.ndarray]]:
+    """candidate -> {"ego": (n,H,W,4) uint8, "third": (n,H,W,4) uint8} for the top-3 by default.
+    ``world_from_camera`` + ``up``: the base is fixed in that world (else in the camera frame)."""
     from handedit.render import render_embodiment
     from handedit.retarget.arm import arm_model
 
@@ -34,8 +36,8 @@ def render_previews(res: HandArmResult, intr: Intrinsics, candidates: list[int] 
     cands = vb.ranking[:3] if candidates is None else candidates
     n = len(res.qpos)
     frames = list(range(n)) if frames is None else frames
-    world = world_from_camera is not None and not np.allclose(world_from_camera, np.eye(4))
-    up = np.array([0.0, 0.0, 1.0]) if world else np.array([0.0, -1.0, 0.0])
+    world = world_from_camera is not None and up is not None
+    up = np.asarray(up, float) if world else np.array([0.0, -1.0, 0.0])
     names = arm.kin.joint_names
     out: dict[int, dict[str, np.ndarray]] = {}
     for c in cands:
@@ -53,7 +55,7 @@ def render_previews(res: HandArmResult, intr: Intrinsics, candidates: list[int] 
 
 
 def top_previews(res: HandArmResult, intr: Intrinsics, world_from_camera: np.ndarray | None = None,
-                 top: int = 3) -> tuple[list[int], list[int], np.ndarray, np.ndarray]:
+                 top: int = 3, up: np.ndarray | None = None) -> tuple[list[int], list[int], np.ndarray, np.ndarray]:
     """What an operator reviews: the top candidates at the first, middle and last frame.
 
     Returns (candidates, frames, ego (K,P,H,W,4), third (K,P,H,W,4)); K = 0 when no
@@ -65,5 +67,5 @@ def top_previews(res: HandArmResult, intr: Intrinsics, world_from_camera: np.nda
     shape = (0, len(frames), intr.height, intr.width, 4)
     if not cands:
         return [], frames, np.zeros(shape, np.uint8), np.zeros(shape, np.uint8)
-    views = render_previews(res, intr, candidates=cands, frames=frames, world_from_camera=world_from_camera)
+    views = render_previews(res, intr, candidates=cands, frames=frames, world_from_camera=world_from_camera, up=up)
     return cands, frames, np.stack([views[c]["ego"] for c in cands]), np.stack([views[c]["third"] for c in cands])

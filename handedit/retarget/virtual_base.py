@@ -13,7 +13,8 @@ whole sequence:
 * per candidate, per frame casadi IK of the robot wrist link onto the target (the human
   wrist mapped by the hand's fixed SE(3)), warm-started along the sequence;
 * candidates with an infeasible critical frame, a joint-limit violation, self- or
-  support-plane collision (or a trajectory jump) are discarded; survivors are ranked
+  support-plane collision, an arm link through the head (closer than
+  ``camera_clearance_m`` to the camera) or a trajectory jump are discarded; survivors are ranked
   lexicographically by critical-frame success, reachability, mean end-effector error,
   joint margin, continuity (each quantised, so a later key can break ties);
 * every candidate's score is returned; the top three get previews; a review policy picks
@@ -126,7 +127,7 @@ def initial_base(targets: np.ndarray, valid: np.ndarray, up: np.ndarray, reach: 
         left, right = np.asarray(shoulders[0], float), np.asarray(shoulders[1], float)
         mid = (left + right) / 2
         fwd = centre - mid
-        T = upright_frame(right, up, fwd)
+        T = upright_frame(right - cfg.init_shoulder_drop * reach * up, up, fwd)
     else:
         fwd = centre - (centre @ up) * up  # horizontal viewing direction (camera at the origin)
         pos = centre - cfg.init_back * reach * fwd / np.linalg.norm(fwd) + cfg.init_up * reach * up
@@ -229,8 +230,17 @@ class _Track:
     chains: np.ndarray  # (T,3,P) in the camera frame
 
 
+def camera_distance(chain_cam: np.ndarray, points: np.ndarray, camera: np.ndarray) -> float:
+    """Distance (m) from the camera centre to the capsule axes through the selected chain points."""
+    pts = chain_cam[:, points].T
+    if len(pts) < 2:
+        return float("inf")
+    return min(_seg_dist(a, b, camera, camera) for a, b in zip(pts[:-1], pts[1:]))
+
+
 def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, valid: np.ndarray,
-              plane: np.ndarray | None, cfg: VirtualBaseConfig, hint: np.ndarray | None = None) -> _Track:
+              plane: np.ndarray | None, cfg: VirtualBaseConfig, hint: np.ndarray | None = None,
+              cameras: np.ndarray | None = None) -> _Track:
     """IK along the sequence for one base. ``hint``: first-frame arm joints of a neighbouring
     candidate (tried first: neighbours differ by a few cm, so it usually converges at once)."""
     T = len(targets)
@@ -273,6 +283,9 @@ def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, 
         elif self_collision(ch, arm.moving, cfg.link_radius, arm.distal):
             status[i] = Reason.COLLISION
         elif plane is not None and plane_clearance(chains[i], arm.arm_points, plane) < cfg.link_radius + cfg.plane_margin:
+            status[i] = Reason.COLLISION
+        elif cameras is not None and cfg.camera_clearance_m > 0 and \
+                camera_distance(chains[i], arm.proximal, cameras[i]) < cfg.camera_clearance_m + cfg.link_radius:
             status[i] = Reason.COLLISION
         else:
             status[i] = Reason.OK
@@ -320,6 +333,7 @@ def search_virtual_base(
     shoulders: np.ndarray | None = None,
     critical: np.ndarray | None = None,
     init_base: np.ndarray | None = None,
+    cameras: np.ndarray | None = None,
 ) -> VirtualBaseResult:
     """Search the 27 bases for one sequence and pick one by the review policy.
 
@@ -327,7 +341,8 @@ def search_virtual_base(
     up: world up in the camera frame (default: image up, -y); support_plane: (4,) (n, d)
     in the camera frame or None (check not possible); shoulders: (2,3) left/right
     shoulder in the camera frame or None; critical: (T,) frames that must be reachable
-    (default: every valid frame); init_base: override the grid centre.
+    (default: every valid frame); init_base: override the grid centre; cameras: (T,3) the
+    camera centre per frame in the targets' frame (arm links must keep clear of the head).
     """
     arm = arm_model(embodiment_id)
     targets = np.asarray(targets, float)
@@ -345,7 +360,7 @@ def search_virtual_base(
     first = int(np.flatnonzero(valid)[0])
     for k, g in enumerate(grid):
         hint = tracks[-1].arm_q[first] if tracks and tracks[-1].status[first] != Reason.OUT_OF_REACH else None
-        tr = _evaluate(arm, g[3], targets, valid, support_plane, cfg, hint)
+        tr = _evaluate(arm, g[3], targets, valid, support_plane, cfg, hint, cameras)
         tracks.append(tr)
         scores.append(_score(k, g, tr, arm, valid, critical, cfg))
     ranking = sorted((c.index for c in scores if c.reason == Reason.OK), key=lambda i: scores[i].key())

@@ -1,27 +1,35 @@
-"""Clip sources: the synthetic oracle, generic video files, and (later) dataset adapters."""
+"""Clip sources: the synthetic oracle, generic video files, and dataset adapters.
+
+Two kinds of spec: a *clip* spec (``SourceSpec``) describes one clip and is what a worker
+opens; a *tree* spec (``TreeSpec``, e.g. a whole EgoDex tree) expands to clip specs in a
+stable listing order, grouped (EgoDex: by task) so that shards can be cut lazily.
+"""
 
 from __future__ import annotations
 
 import json
 from functools import lru_cache
-from typing import Annotated, Union
+from typing import Annotated, Iterator, Union
 
 from pydantic import Field, TypeAdapter
 
 from handedit.sources.base import ClipChunk, ClipInfo, Source, SourceError, frame_status
+from handedit.sources.egodex import EgoDexSpec, EgoDexTree
 from handedit.sources.synthetic import SyntheticSpec
 from handedit.sources.video import VideoSpec
 
-SourceSpec = Annotated[Union[SyntheticSpec, VideoSpec], Field(discriminator="kind")]
+SourceSpec = Annotated[Union[SyntheticSpec, VideoSpec, EgoDexSpec], Field(discriminator="kind")]
+TreeSpec = Annotated[Union[EgoDexTree], Field(discriminator="kind")]
 _SPEC = TypeAdapter(SourceSpec)
+TREES = {"egodex": EgoDexTree}  # --source NAME -> its tree spec
 
 
-def parse_spec(data: dict) -> SyntheticSpec | VideoSpec:
+def parse_spec(data: dict) -> SyntheticSpec | VideoSpec | EgoDexSpec:
     return _SPEC.validate_python(data)
 
 
-def open_source(spec: SyntheticSpec | VideoSpec) -> Source:
-    """Instantiate the source a spec describes (cheap; heavy work happens in ``read``)."""
+def open_source(spec) -> Source:
+    """Instantiate the source a spec describes (reads metadata; frames are read in ``read``)."""
     return spec.open()
 
 
@@ -31,7 +39,16 @@ def open_source_json(spec_json: str) -> Source:
     return open_source(parse_spec(json.loads(spec_json)))
 
 
+def iter_groups(trees, clips=()) -> Iterator[tuple[str, list]]:
+    """(group name, clip specs) of explicit clips (one group, "clips") then of each tree."""
+    if clips:
+        yield "clips", list(clips)
+    for tree in trees:
+        for name, specs in tree.groups():
+            yield f"{tree.kind}-{name}", specs
+
+
 __all__ = [
-    "ClipChunk", "ClipInfo", "Source", "SourceError", "SourceSpec",
-    "SyntheticSpec", "VideoSpec", "frame_status", "open_source", "open_source_json", "parse_spec",
+    "ClipChunk", "ClipInfo", "EgoDexSpec", "EgoDexTree", "Source", "SourceError", "SourceSpec", "SyntheticSpec",
+    "TREES", "TreeSpec", "VideoSpec", "frame_status", "iter_groups", "open_source", "open_source_json", "parse_spec",
 ]

@@ -5,7 +5,14 @@ open it themselves and read any frame range: ingest then runs chunk-parallel, an
 driver never ships pixels. Dataset adapters (EgoDex, ARCTIC, OakInk2, HOI4D, HO-Cap)
 implement the same two calls; the MANO-parameter datasets convert to 21 keypoints in
 their adapter, so every stage downstream sees one representation (see
-``handedit.keypoints`` for the joint order).
+``handedit.keypoints`` for the joint order and the hand axis).
+
+Hands: a clip tracks ``ClipInfo.hands`` (e.g. ``("left", "right")`` for EgoDex, one side
+for a one-hand video); every per-hand array has a hand axis in that order.
+
+World: ``ClipInfo.world`` says what the per-frame ``world_from_camera`` poses mean:
+None (no world: identity poses), or ``{"up": [x, y, z]}`` (world up, in world
+coordinates) with an optional ``"support_plane": [n, d]`` (the table, n . p + d = height).
 """
 
 from __future__ import annotations
@@ -16,6 +23,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from handedit.camera import Intrinsics
+from handedit.keypoints import ARM_JOINTS, N_JOINTS
 
 
 class SourceError(ValueError):
@@ -35,25 +43,38 @@ class ClipInfo:
     fingerprint: str  # content identity of the source (file hash, or generator seed + params)
     meta: dict = field(default_factory=dict)
     ground_truth: tuple[str, ...] = ()  # names of ClipChunk.gt arrays this source provides
+    hands: tuple[str, ...] = ("right",)  # sides tracked, in hand-axis order (keypoints.SIDES order)
+    world: dict | None = None  # see the module doc
+    has_arm: bool = False  # arm_keypoints are real (elbow, shoulder, clavicle per side)
+    keypoints_exact: bool = False  # keypoints are pixel-exact by construction (no registration needed)
 
 
 @dataclass
 class ClipChunk:
-    """Frames [start, stop) of a clip. Arrays are per frame along axis 0."""
+    """Frames [start, stop) of a clip. Arrays are per frame along axis 0, per hand along axis 1."""
 
     start: int
     frames: np.ndarray  # (n,H,W,3) uint8 RGB
     world_from_camera: np.ndarray  # (n,4,4) float64
-    keypoints: np.ndarray  # (n,21,3) float32, camera frame, metres, MANO order; 0 where invalid
-    keypoints_valid: np.ndarray  # (n,21) bool
+    keypoints: np.ndarray  # (n,S,21,3) float32, camera frame, metres, MANO order; 0 where invalid
+    keypoints_valid: np.ndarray  # (n,S,21) bool
     frame_ok: np.ndarray  # (n,) bool: False where the frame could not be decoded
     object_mask: np.ndarray | None = None  # (n,H,W) bool
     object_pose: np.ndarray | None = None  # (n,4,4) camera_from_object
     gt: dict[str, np.ndarray] = field(default_factory=dict)  # ground truth, e.g. hand_mask
+    arm_keypoints: np.ndarray | None = None  # (n,S,3,3) camera frame (keypoints.ARM_JOINTS)
+    arm_valid: np.ndarray | None = None  # (n,S,3) bool
 
     @property
     def n(self) -> int:
         return int(self.frames.shape[0])
+
+    def arms(self) -> tuple[np.ndarray, np.ndarray]:
+        """(arm_keypoints, arm_valid), zeros/False when the source has none."""
+        if self.arm_keypoints is not None and self.arm_valid is not None:
+            return self.arm_keypoints, self.arm_valid
+        S = self.keypoints.shape[1]
+        return np.zeros((self.n, S, len(ARM_JOINTS), 3), np.float32), np.zeros((self.n, S, len(ARM_JOINTS)), bool)
 
 
 @runtime_checkable
@@ -65,6 +86,11 @@ class Source(Protocol):
     def object_mesh(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(vertices (V,3) in the object frame, faces (F,3)) when the source has an object model."""
         ...
+
+
+def no_keypoints(n: int, sides: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Keypoint arrays for frames without any tracked hand."""
+    return np.zeros((n, sides, N_JOINTS, 3), np.float32), np.zeros((n, sides, N_JOINTS), bool)
 
 
 def frame_status(chunk: ClipChunk) -> tuple[np.ndarray, dict[int, str]]:

@@ -58,6 +58,10 @@ class SyntheticSpec(pydantic.BaseModel):
     n_frames: int = 48
     fps: float = 30.0
 
+    @property
+    def id(self) -> str:
+        return self.clip_id
+
     def open(self) -> "SyntheticSource":
         return SyntheticSource(self)
 
@@ -664,9 +668,9 @@ class SyntheticSource:
         return ClipInfo(
             clip_id=s.clip_id, n_frames=s.n_frames, height=s.height, width=s.width, fps=s.fps,
             intrinsics=self.plan.intr, has_keypoints=True, has_object=True, fingerprint=self.fingerprint,
-            meta={"generator": GENERATOR_VERSION, "seed": s.seed, "object": self.plan.obj.kind,
-                  "hand": "right"},
-            ground_truth=GROUND_TRUTH,
+            meta={"dataset": "synthetic", "generator": GENERATOR_VERSION, "seed": s.seed, "object": self.plan.obj.kind},
+            ground_truth=GROUND_TRUTH, hands=("right",), keypoints_exact=True,
+            world={"up": [0.0, 0.0, 1.0], "support_plane": [0.0, 0.0, 1.0, 0.0], "origin": "the table top (z = 0)"},
         )
 
     def object_mesh(self) -> tuple[np.ndarray, np.ndarray]:
@@ -686,8 +690,8 @@ class SyntheticSource:
         }
         T_wc = np.zeros((n, 4, 4))
         T_co = np.zeros((n, 4, 4))
-        kps = np.zeros((n, 21, 3), np.float32)
-        valid = np.zeros((n, 21), bool)
+        kps = np.zeros((n, 1, 21, 3), np.float32)  # one hand: the right
+        valid = np.zeros((n, 1, 21), bool)
         if n:
             r, s = _renderer(W, H), _scene_for(self.fingerprint, plan)
             for i, t in enumerate(range(start, stop)):
@@ -700,8 +704,8 @@ class SyntheticSource:
                 cam_from_world = np.linalg.inv(st.world_from_camera)
                 T_co[i] = cam_from_world @ st.world_from_object
                 kp = frame_keypoints(plan, st) @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
-                valid[i] = kp[:, 2] > 0.01
-                kps[i] = np.where(valid[i][:, None], kp, 0.0)
+                valid[i, 0] = kp[:, 2] > 0.01
+                kps[i, 0] = np.where(valid[i, 0][:, None], kp, 0.0)
         return ClipChunk(
             start=start, frames=out["frames"], world_from_camera=T_wc, keypoints=kps, keypoints_valid=valid,
             frame_ok=np.ones(n, bool), object_mask=out["obj"], object_pose=T_co,

@@ -1,12 +1,22 @@
-"""Composite the rendered robot over the restored background, respecting occluders.
+"""Composite the rendered robots over the restored background, respecting occluders.
 
-Why: the pseudo-GT must show the robot exactly where the renderer put it, except where
+Why: the pseudo-GT must show each robot exactly where the renderer put it, except where
 the manipulated object is in front of it (the paper rejects "incorrect occlusion").
-With per-pixel depth for both, the nearer surface wins; with only an occluder mask the
-caller decides (``occluder_in_front_without_depth``) because a mask alone cannot say
-who is in front. Occluded pixels keep the background bit-exactly. Edges are softened by
-an inward feather (alpha times its own blur), which never spreads robot colour outside
-the rendered silhouette or into occluded pixels.
+Hands: restoration removed every hand; a hand whose robot is not drawn (its side failed
+upstream) gets its own source pixels back (inside its dilated human mask), so a frame
+never loses a hand it had: the pseudo-GT shows a robot where a side succeeded and the
+human hand where it did not (what "kept" means then is the QC stage's keep policy).
+
+Residue check (``HUMAN_VISIBLE``, per replaced side): human fingers left visible beside
+the robot, where segmentation missed part of the hand. The side's registered finger
+bones (sampled between its projected joints) should all lie in its human mask, which
+restoration removed; a sample outside the mask (grown by 2 px), not covered by any robot,
+whose colour in the composite matches *this hand* (a Gaussian of its source pixels along
+the bones, against one of the scene around the hand) is visible human. More than
+``residue_threshold`` of the finger samples visible rejects the side. Calibrated on the
+real EgoDex clips (tests/test_egodex_curate.py): finger pixels the mask left out (its
+erosion by a third of a finger's width) are flagged, the pipeline's own composites of
+fully removed hands pass.
 """
 
 from __future__ import annotations
@@ -18,7 +28,8 @@ import cv2
 import numpy as np
 import pydantic
 
-from handedit.reasons import STATUS_DTYPE, Reason
+from handedit.keypoints import N_JOINTS, PARENT, WRIST
+from handedit.reasons import STATUS_DTYPE, Reason, per_frame
 
 
 class CompositeConfig(pydantic.BaseModel):
@@ -31,14 +42,23 @@ class CompositeConfig(pydantic.BaseModel):
     occluder_in_front_without_depth: bool = False  # occluder mask without depth: occludes the robot?
     premultiplied: bool = False  # rgba colour already multiplied by alpha
     min_visible_px: int = pydantic.Field(1, ge=1)  # fewer visible robot pixels -> EMPTY_RENDER
+    paste_dilate_px: int = pydantic.Field(6, ge=0)  # a kept human hand comes back over its mask grown by this
+    residue_threshold: float = pydantic.Field(0.05, description="share of finger samples visible as human -> HUMAN_VISIBLE")
 
 
 @dataclass
 class CompositeResult:
     image: np.ndarray  # (n,H,W,3) uint8
-    robot_mask: np.ndarray  # (n,H,W) bool: visible robot pixels (alpha >= 0.5, not occluded)
+    robot_mask: np.ndarray  # (n,S,H,W) bool: visible robot pixels of each side (alpha >= 0.5, not occluded)
+    hand_status: np.ndarray  # (n,S) int16 Reason
     status: np.ndarray  # (n,) int16 Reason
     method: str
+    residue: np.ndarray | None = None  # (n,S) float32: the residue statistic (nan where not measured)
+
+    @property
+    def union(self) -> np.ndarray:
+        """(n,H,W) every side's visible robot pixels (what harmonization adjusts)."""
+        return self.robot_mask.any(axis=1)
 
 
 def _robot_depth_at_edges(depth: np.ndarray, alpha: np.ndarray) -> np.ndarray:
@@ -75,6 +95,60 @@ def occlusion_mask(
     return occ & (~has_od & cfg.occluder_in_front_without_depth | has_od & ((rd <= 0) | (od < rd - cfg.depth_tolerance)))
 
 
+def _disk(r: float) -> np.ndarray:
+    r = max(1, int(round(r)))
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+
+
+def _loglik(x: np.ndarray, px: np.ndarray) -> np.ndarray:
+    mu = px.mean(0)
+    cov = np.cov(px.T) + np.eye(3) * 16.0
+    d = x - mu
+    return -0.5 * np.einsum("...i,ij,...j->...", d, np.linalg.inv(cov), d) - 0.5 * np.log(np.linalg.det(cov))
+
+
+def _bone_samples(pts: np.ndarray, valid: np.ndarray, per_bone: int = 8) -> np.ndarray:
+    """(m,2) points along the finger bones (joints 1-20 and their parents)."""
+    out = []
+    t = np.linspace(0.15, 1.0, per_bone)[:, None]
+    for j in range(1, N_JOINTS):
+        p = PARENT[j]
+        if p != WRIST and valid[j] and valid[p]:
+            out.append(pts[p] + t * (pts[j] - pts[p]))
+    return np.concatenate(out) if out else np.zeros((0, 2))
+
+
+def human_residue(image: np.ndarray, source: np.ndarray, human: np.ndarray, robot: np.ndarray,
+                  keypoints_2d: np.ndarray, keypoints_valid: np.ndarray) -> float:
+    """The residue statistic of one side (see module doc); nan when it cannot be measured."""
+    H, W = human.shape
+    pts = _bone_samples(np.asarray(keypoints_2d, float), np.asarray(keypoints_valid, bool))
+    if len(pts) < 8 or human.sum() < 30:
+        return float("nan")
+    q = np.round(pts).astype(int)
+    q = q[(q[:, 0] >= 0) & (q[:, 0] < W) & (q[:, 1] >= 0) & (q[:, 1] < H)]
+    if len(q) < 8:
+        return float("nan")
+    grown = cv2.dilate(human.astype(np.uint8), _disk(2)).astype(bool)
+    src = cv2.cvtColor(source, cv2.COLOR_RGB2YCrCb).astype(np.float32)
+    on_hand = q[grown[q[:, 1], q[:, 0]]]
+    scale = float(np.sqrt(human.sum()))
+    ring = cv2.dilate(human.astype(np.uint8), _disk(0.5 * scale)).astype(bool) & ~cv2.dilate(
+        human.astype(np.uint8), _disk(0.15 * scale)).astype(bool) & ~robot
+    if len(on_hand) < 8 or ring.sum() < 30:
+        return float("nan")
+    hand_px = src[on_hand[:, 1], on_hand[:, 0]]
+    scene_px = src[ring]
+    rng = np.random.default_rng(0)
+    scene_px = scene_px[rng.choice(len(scene_px), min(len(scene_px), 4000), replace=False)]
+    out = q[~grown[q[:, 1], q[:, 0]] & ~robot[q[:, 1], q[:, 0]]]
+    if not len(out):
+        return 0.0
+    x = cv2.cvtColor(image, cv2.COLOR_RGB2YCrCb).astype(np.float32)[out[:, 1], out[:, 0]]
+    hand_like = _loglik(x, hand_px) > _loglik(x, scene_px)
+    return float(hand_like.sum() / len(q))
+
+
 def composite(
     background: np.ndarray,
     rgba: np.ndarray,
@@ -82,8 +156,22 @@ def composite(
     occluder_mask: np.ndarray | None = None,
     occluder_depth: np.ndarray | None = None,
     cfg: CompositeConfig = CompositeConfig(),
+    *,
+    robot_side: np.ndarray | None = None,
+    replace: np.ndarray | None = None,
+    source: np.ndarray | None = None,
+    human_mask: np.ndarray | None = None,
+    keypoints_2d: np.ndarray | None = None,
+    keypoints_valid: np.ndarray | None = None,
 ) -> CompositeResult:
-    """Alpha-composite robot renders over backgrounds (arrays per frame along axis 0)."""
+    """Alpha-composite robot renders over backgrounds (arrays per frame along axis 0).
+
+    ``robot_side`` (n,H,W) uint8: which hand's robot each rendered pixel is (0: none; None:
+    one robot, side 0). ``replace`` (n,S) bool: sides whose robot is drawn (default: all).
+    ``source`` (n,H,W,3) and ``human_mask`` (n,S,H,W): the source frames and each hand's
+    human mask, for pasting back hands that are not replaced; ``keypoints_2d`` (n,S,21,2)
+    and ``keypoints_valid`` (n,S,21): the registered joints, for the residue check.
+    """
     if cfg.method != "classical":
         raise ValueError(f"composite: unknown method {cfg.method!r}; this build has 'classical'")
     background = np.asarray(background)
@@ -93,11 +181,25 @@ def composite(
         raise ValueError(
             f"composite: background (n,H,W,3), rgba (n,H,W,4), depth (n,H,W); got {background.shape}, {rgba.shape}, {np.shape(depth)}"
         )
+    S = replace.shape[1] if replace is not None else (human_mask.shape[1] if human_mask is not None else 1)
+    replace = np.ones((n, S), bool) if replace is None else np.asarray(replace, bool)
+    side_of = np.where(rgba[..., 3] > 0, 1, 0).astype(np.uint8) if robot_side is None else np.asarray(robot_side)
     image = np.empty_like(background)
-    robot_mask = np.zeros((n, H, W), bool)
-    status = np.full(n, Reason.OK, STATUS_DTYPE)
+    robot_mask = np.zeros((n, S, H, W), bool)
+    hs = np.where(replace, Reason.OK, Reason.UPSTREAM).astype(STATUS_DTYPE)
+    residue = np.full((n, S), np.nan, np.float32)
     for i in range(n):
-        a = rgba[i, ..., 3].astype(np.float32) / 255.0
+        bg = background[i]
+        if human_mask is not None and source is not None and (~replace[i]).any():
+            keep = np.zeros((H, W), bool)
+            for k in np.flatnonzero(~replace[i]):
+                keep |= human_mask[i, k]
+            if keep.any():
+                keep = cv2.dilate(keep.astype(np.uint8), _disk(cfg.paste_dilate_px)).astype(bool) if cfg.paste_dilate_px else keep
+                bg = bg.copy()
+                bg[keep] = source[i][keep]
+        drawn = np.isin(side_of[i], np.flatnonzero(replace[i]) + 1)
+        a = np.where(drawn, rgba[i, ..., 3].astype(np.float32) / 255.0, 0.0).astype(np.float32)
         occ = occlusion_mask(
             depth[i], a,
             None if occluder_mask is None else occluder_mask[i],
@@ -105,7 +207,9 @@ def composite(
             cfg,
         )
         vis = np.where(occ, 0.0, a).astype(np.float32)
-        robot_mask[i] = vis >= 0.5
+        visible = vis >= 0.5
+        for k in range(S):
+            robot_mask[i, k] = visible & (side_of[i] == k + 1)
         if cfg.feather_px > 0:
             soft = vis * cv2.GaussianBlur(vis, (0, 0), cfg.feather_px)
         else:
@@ -113,12 +217,17 @@ def composite(
         fg = rgba[i, ..., :3].astype(np.float32)
         if cfg.premultiplied:  # un-premultiply so the feathered alpha applies to true colour
             fg = np.where(a[..., None] > 0, fg / np.maximum(a[..., None], 1e-6), 0.0)
-        bg = background[i].astype(np.float32)
-        out = soft[..., None] * fg + (1.0 - soft[..., None]) * bg
+        out = soft[..., None] * fg + (1.0 - soft[..., None]) * bg.astype(np.float32)
         img = np.clip(np.round(out), 0, 255).astype(np.uint8)
-        keep = soft <= 0  # exactly the background where no robot contributes (incl. occluded)
-        img[keep] = background[i][keep]
+        keep_bg = soft <= 0  # exactly the background where no robot contributes (incl. occluded)
+        img[keep_bg] = bg[keep_bg]
         image[i] = img
-        if int(robot_mask[i].sum()) < cfg.min_visible_px:
-            status[i] = Reason.EMPTY_RENDER
-    return CompositeResult(image, robot_mask, status, "classical:alpha-over+depth-occlusion")
+        for k in np.flatnonzero(replace[i]):
+            if int(robot_mask[i, k].sum()) < cfg.min_visible_px:
+                hs[i, k] = Reason.EMPTY_RENDER
+            elif human_mask is not None and source is not None and keypoints_2d is not None:
+                residue[i, k] = human_residue(img, source[i], human_mask[i, k], visible, keypoints_2d[i, k], keypoints_valid[i, k])
+                if residue[i, k] > cfg.residue_threshold:
+                    hs[i, k] = Reason.HUMAN_VISIBLE
+    method = "classical:alpha-over+depth-occlusion" + ("+paste-back+residue" if human_mask is not None else "")
+    return CompositeResult(image, robot_mask, hs, per_frame(hs), method, residue)

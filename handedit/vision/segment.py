@@ -48,7 +48,7 @@ import numpy as np
 import pydantic
 
 from handedit.keypoints import MCPS, N_JOINTS, PARENT, WRIST
-from handedit.reasons import STATUS_DTYPE, Reason
+from handedit.reasons import STATUS_DTYPE, Reason, per_frame
 from handedit.vision.skin import SkinModel, prior_rule, to_ycrcb
 
 _TIP_JOINTS = frozenset((4, 8, 12, 16, 20))
@@ -91,11 +91,17 @@ class SegmentConfig(pydantic.BaseModel):
 
 @dataclass
 class SegmentResult:
-    hand_mask: np.ndarray  # (n,H,W) bool: wrist and distal
-    handarm_mask: np.ndarray  # (n,H,W) bool: hand plus forearm
-    confidence: np.ndarray  # (n,) float32, see the module docstring
-    status: np.ndarray  # (n,) int16 Reason
+    hand_mask: np.ndarray  # (n,S,H,W) bool: wrist and distal, per hand
+    handarm_mask: np.ndarray  # (n,S,H,W) bool: hand plus forearm, per hand
+    confidence: np.ndarray  # (n,S) float32, see the module docstring
+    hand_status: np.ndarray  # (n,S) int16 Reason per hand (ABSENT: not in view)
+    status: np.ndarray  # (n,) int16: OK where any hand is OK (handedit.reasons.per_frame)
     method: str
+
+    @property
+    def union(self) -> tuple[np.ndarray, np.ndarray]:
+        """(hand, hand-arm) masks of all hands together (n,H,W): what restoration removes."""
+        return self.hand_mask.any(1), self.handarm_mask.any(1)
 
 
 # ---------------------------------------------------------------------------------------
@@ -208,6 +214,7 @@ class _KpFrame:
     valid: np.ndarray  # (21,) bool
     scale: float
     forearm: np.ndarray | None
+    arm: np.ndarray | None = None  # (m,2) working px: wrist -> elbow -> ... when the source tracks the arm
 
 
 def _handlike(ycc: np.ndarray, sure: np.ndarray, hand_roi: np.ndarray, s: float) -> np.ndarray | None:
@@ -260,8 +267,30 @@ def _arm_direction(handlike: np.ndarray | None, kp: _KpFrame, cfg: SegmentConfig
     return best_dir if best >= 0.5 else kp.forearm
 
 
-def _segment_kp(bgr: np.ndarray, ycc: np.ndarray, prob: np.ndarray, kp: _KpFrame, cfg: SegmentConfig) -> tuple[np.ndarray, np.ndarray]:
-    """(handarm, hand) bool masks for a frame seeded by its keypoints."""
+def _arm_corridor(shape: tuple[int, int], kp: _KpFrame, cfg: SegmentConfig) -> np.ndarray | None:
+    """The tracked arm (wrist -> elbow -> shoulder, then on to the border) as a thick band."""
+    if kp.arm is None or len(kp.arm) < 2:
+        return None
+    m = np.zeros(shape, np.uint8)
+    pts = [kp.arm[0], *kp.arm[1:]]
+    d = pts[-1] - pts[-2]
+    if np.linalg.norm(d) > 1e-3:  # the arm leaves the view: extend its last segment to the border
+        pts.append(pts[-1] + d / np.linalg.norm(d) * float(shape[0] + shape[1]))
+    width = max(2, int(round(cfg.forearm_width * kp.scale)))
+    for a, b in zip(pts[:-1], pts[1:]):
+        cv2.line(m, _ipt(a), _ipt(b), 1, width)
+    return m.astype(bool)
+
+
+def _segment_kp(bgr: np.ndarray, ycc: np.ndarray, prob: np.ndarray, kp: _KpFrame, cfg: SegmentConfig,
+                others: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(handarm, hand) bool masks for a frame seeded by its keypoints.
+
+    ``others``: pixels of the frame's other hands (their skeletons), definite background
+    here so one hand's mask never swallows the other. With a tracked arm (``kp.arm``) the
+    forearm is not searched: its band is a candidate region whatever its colour (sleeves are
+    not skin), seeded along its centre line.
+    """
     shape = prob.shape
     s = kp.scale
     sure = _draw_skeleton(shape, kp.pts, kp.valid, int(round(0.08 * s)), tip_frac=0.7)
@@ -278,8 +307,11 @@ def _segment_kp(bgr: np.ndarray, ycc: np.ndarray, prob: np.ndarray, kp: _KpFrame
     roi = cv2.dilate(likely.astype(np.uint8), _disk(cfg.roi_margin * s)).astype(bool)
     corridor = np.zeros(shape, np.uint8)
     handlike = _handlike(ycc, sure, roi, s)
-    arm_dir = _arm_direction(handlike, kp, cfg) if cfg.arm_search_deg > 0 else kp.forearm
-    if arm_dir is not None:
+    band = _arm_corridor(shape, kp, cfg)
+    arm_dir = kp.forearm if band is not None or cfg.arm_search_deg <= 0 else _arm_direction(handlike, kp, cfg)
+    if band is not None:
+        roi |= band
+    elif arm_dir is not None:
         far = kp.pts[WRIST] + arm_dir * float(shape[0] + shape[1])
         cv2.line(corridor, _ipt(kp.pts[WRIST]), _ipt(far), 1, max(2, int(round(cfg.forearm_width * s))))
         roi |= cv2.dilate(corridor, _disk(0.3 * s)).astype(bool)
@@ -294,11 +326,23 @@ def _segment_kp(bgr: np.ndarray, ycc: np.ndarray, prob: np.ndarray, kp: _KpFrame
     if handlike is not None and cfg.colour_gate:
         # (this frame's hand colour, not just skin chroma: keeps a skin-coloured table out)
         init[(init == cv2.GC_PR_FGD) & ~handlike] = cv2.GC_PR_BGD
+    colourless = np.zeros(shape, bool)  # the tracked arm's band: not gated by skin colour
+    if band is not None:
+        colourless = band & ~likely
+        init[colourless] = cv2.GC_PR_FGD
+        centre = np.zeros(shape, np.uint8)
+        for a, b in zip(kp.arm[:-1], kp.arm[1:]):
+            cv2.line(centre, _ipt(a), _ipt(b), 1, max(1, int(round(0.08 * s))))
+        sure = sure | (centre.astype(bool) & ~cv2.dilate(likely.astype(np.uint8), _disk(0.3 * s)).astype(bool))
     init[sure] = cv2.GC_FGD
-    init[roi & (prob < cfg.skin_gate) & (init != cv2.GC_FGD)] = cv2.GC_BGD
+    init[roi & (prob < cfg.skin_gate) & (init != cv2.GC_FGD) & ~colourless] = cv2.GC_BGD
+    if others is not None:
+        init[others & ~sure] = cv2.GC_BGD
     fg = _grabcut(bgr, init, cfg.grabcut_iters)
     fg = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_CLOSE, _disk(1)).astype(bool)
-    fg &= (prob >= cfg.skin_gate) | sure
+    fg &= (prob >= cfg.skin_gate) | sure | colourless
+    if others is not None:
+        fg &= ~others
     fg = _keep_touching(fg, sure)
     if kp.forearm is None:
         return fg, fg
@@ -435,26 +479,82 @@ def _upsample(soft: np.ndarray, guide: np.ndarray, radius: int, eps: float) -> n
     return up >= 0.5
 
 
+def _split_overlaps(masks: list[np.ndarray | None], skeletons: list[np.ndarray | None]) -> list[np.ndarray | None]:
+    """A pixel claimed by two hands goes to the one whose skeleton is nearer."""
+    have = [k for k, m in enumerate(masks) if m is not None and skeletons[k] is not None]
+    if len(have) < 2:
+        return masks
+    both = np.zeros(masks[have[0]].shape, np.int32)
+    for k in have:
+        both += masks[k]
+    if not (both > 1).any():
+        return masks
+    dist = np.stack([cv2.distanceTransform((~skeletons[k]).astype(np.uint8), cv2.DIST_L2, 3) for k in have])
+    owner = np.array(have)[np.argmin(dist, axis=0)]
+    out = list(masks)
+    for k in have:
+        out[k] = masks[k] & ((both <= 1) | (owner == k))
+    return out
+
+
+def _frame_kp(pts: np.ndarray, valid: np.ndarray, arm: np.ndarray | None, shape, cfg: SegmentConfig) -> _KpFrame | None:
+    if not _usable(pts, valid, shape, cfg):
+        return None
+    scale = _hand_scale(pts, valid)
+    fore = _forearm_dir(pts, valid)
+    line = None
+    if arm is not None:
+        ok = np.isfinite(arm).all(-1)
+        if ok.any() and ok[0]:
+            line = np.concatenate([pts[WRIST][None], arm[: int(np.argmin(ok)) if not ok.all() else len(arm)]])
+            d = line[1] - line[0]
+            if np.linalg.norm(d) > 1e-3:
+                fore = d / np.linalg.norm(d)
+    return _KpFrame(np.nan_to_num(pts), valid.copy(), scale, fore, line)
+
+
 def segment(
     frames: np.ndarray,
     keypoints_2d: np.ndarray | None,
     keypoints_valid: np.ndarray | None,
     cfg: SegmentConfig = SegmentConfig(),
+    *,
+    present: np.ndarray | None = None,
+    arm_2d: np.ndarray | None = None,
 ) -> SegmentResult:
-    """Hand and hand-arm masks for a chunk of frames (see the module docstring)."""
+    """Per-hand hand and hand-arm masks for a chunk of frames (see the module doc).
+
+    ``keypoints_2d`` (n,S,21,2) pixels and ``keypoints_valid`` (n,S,21): S hands per frame
+    (None: no keypoints, one hand found by skin colour). ``present`` (n,S): sides in view
+    (default: those with usable keypoints). ``arm_2d`` (n,S,m,2): the tracked arm's joints
+    projected (elbow, shoulder, ...; NaN where unknown), which replaces the forearm search.
+    """
     frames = np.asarray(frames)
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
         raise ValueError(f"segment: frames must be (n,H,W,3) uint8, got {frames.shape} {frames.dtype}")
     n, H, W = frames.shape[:3]
     if keypoints_2d is None or keypoints_valid is None:
-        keypoints_2d = np.full((n, N_JOINTS, 2), np.nan, np.float32)
-        keypoints_valid = np.zeros((n, N_JOINTS), bool)
+        keypoints_2d = np.full((n, 1, N_JOINTS, 2), np.nan, np.float32)
+        keypoints_valid = np.zeros((n, 1, N_JOINTS), bool)
+        skin_only = True
+    else:
+        skin_only = False
     kp2d = np.asarray(keypoints_2d, dtype=np.float64)
+    if kp2d.ndim != 4 or kp2d.shape[2:] != (N_JOINTS, 2):
+        raise ValueError(f"segment: keypoints_2d must be (n,S,21,2), got {kp2d.shape}")
+    S = kp2d.shape[1]
     kval = np.asarray(keypoints_valid, dtype=bool) & np.isfinite(kp2d).all(-1)
     if cfg.method == "onnx":
         from handedit.models.segmenter import segment_onnx
 
-        return segment_onnx(frames, kp2d, kval, cfg)
+        per = [segment_onnx(frames, kp2d[:, k], kval[:, k], cfg) for k in range(S)]
+        hands = _split_overlaps_all([p.hand_mask[:, 0] for p in per], kp2d, kval)
+        arms = _split_overlaps_all([p.handarm_mask[:, 0] for p in per], kp2d, kval)
+        hs = np.concatenate([p.hand_status for p in per], 1)
+        if present is not None:
+            hs[~np.asarray(present, bool)] = Reason.ABSENT
+        return SegmentResult(np.stack(hands, 1), np.stack(arms, 1), np.concatenate([p.confidence for p in per], 1), hs,
+                             per_frame(hs), per[0].method)
 
     s = min(1.0, cfg.work_max_side / max(H, W))
     ws = (max(1, int(round(W * s))), max(1, int(round(H * s))))
@@ -462,97 +562,133 @@ def segment(
     ycc = [to_ycrcb(f) for f in small]
     bgr = [cv2.cvtColor(f, cv2.COLOR_RGB2BGR) for f in small]
     blank = np.array([float(y[..., 0].std()) < cfg.blank_std for y in ycc], bool)
+    arm_s = None if arm_2d is None else np.asarray(arm_2d, np.float64) * s
 
-    kps: list[_KpFrame | None] = []
+    kps: list[list[_KpFrame | None]] = []
     for i in range(n):
-        pts = kp2d[i] * s
-        if blank[i] or not _usable(pts, kval[i], ycc[i].shape[:2], cfg):
-            kps.append(None)
-            continue
-        scale = _hand_scale(pts, kval[i])
-        kps.append(_KpFrame(np.nan_to_num(pts), kval[i].copy(), scale, _forearm_dir(pts, kval[i])))
+        row = []
+        for k in range(S):
+            ok = not blank[i] and (present is None or bool(present[i, k]))
+            row.append(_frame_kp(kp2d[i, k] * s, kval[i, k], None if arm_s is None else arm_s[i, k], ycc[i].shape[:2], cfg)
+                       if ok else None)
+        kps.append(row)
+    # Without keypoints (one hand), the skin-components path finds it.
+    use_skin = skin_only or (S == 1 and present is None)
 
-    seeds = [
-        _draw_skeleton(y.shape[:2], k.pts, k.valid, int(round(0.08 * k.scale)), 0.7) if k is not None else None
-        for y, k in zip(ycc, kps)
-    ]
+    skel = [[_draw_skeleton(ycc[i].shape[:2], k.pts, k.valid, int(round(0.08 * k.scale)), 0.7) if k is not None else None
+             for k in kps[i]] for i in range(n)]
+    seeds = [np.any([sk for sk in row if sk is not None], axis=0) if any(sk is not None for sk in row) else None for row in skel]
     model = _fit_skin([y for y, b in zip(ycc, blank) if not b] or ycc, [sd for sd, b in zip(seeds, blank) if not b] or seeds)
 
-    handarm, hand = [], []
+    handarm = [[None] * S for _ in range(n)]
+    hand = [[None] * S for _ in range(n)]
     for i in range(n):
         p = model.prob(ycc[i])
         if blank[i]:
-            e = np.zeros(p.shape, bool)
-            handarm.append(e), hand.append(e)
-        elif kps[i] is not None:
-            a, b = _segment_kp(bgr[i], ycc[i], p, kps[i], cfg)
-            handarm.append(a), hand.append(b)
-        else:
-            a, b = _segment_nokp(bgr[i], ycc[i], p, cfg)
-            handarm.append(a), hand.append(b)
+            continue
+        row = kps[i]
+        if any(k is not None for k in row):
+            thick = [cv2.dilate(sk.astype(np.uint8), _disk(0.15 * row[k].scale)).astype(bool) if sk is not None else None
+                     for k, sk in enumerate(skel[i])]
+            for k, kp in enumerate(row):
+                if kp is None:
+                    continue
+                others = [t for j, t in enumerate(thick) if j != k and t is not None]
+                a, b = _segment_kp(bgr[i], ycc[i], p, kp, cfg, np.any(others, axis=0) if others else None)
+                handarm[i][k], hand[i][k] = a, b
+            handarm[i] = _split_overlaps(handarm[i], skel[i])
+            hand[i] = [h & a if h is not None else None for h, a in zip(_split_overlaps(hand[i], skel[i]), handarm[i])]
+        elif use_skin:
+            handarm[i][0], hand[i][0] = _segment_nokp(bgr[i], ycc[i], p, cfg)
 
-    # Temporal blending of soft masks with warped neighbours (hand and hand-arm alike).
+    # Temporal blending of soft masks with warped neighbours, per hand.
     wt = cfg.temporal_weight
-    prev_A = [None] + [_kp_transform(kps[i - 1], kps[i]) for i in range(1, n)]  # i-1 -> i
-    next_A = [_kp_transform(kps[i + 1], kps[i]) for i in range(n - 1)] + [None]  # i+1 -> i
-    soft_arm, soft_hand, stability = [], [], np.full(n, _UNKNOWN_STABILITY, np.float32)
-    for i in range(n):
-        acc_a = handarm[i].astype(np.float32)
-        acc_h = hand[i].astype(np.float32)
-        if wt > 0 and not blank[i]:
-            acc_a, acc_h = acc_a * (1 - 2 * wt), acc_h * (1 - 2 * wt)
-            ious = []
-            for j, A in ((i - 1, prev_A[i]), (i + 1, next_A[i])):
-                if 0 <= j < n and not blank[j]:
-                    wa = _warp(handarm[j].astype(np.float32), A)
-                    wh = _warp(hand[j].astype(np.float32), A)
-                    ious.append(_iou(handarm[i], wa >= 0.5))
-                else:  # no neighbour: it votes like this frame
-                    wa, wh = handarm[i].astype(np.float32), hand[i].astype(np.float32)
-                acc_a += wt * wa
-                acc_h += wt * wh
-            stability[i] = float(np.mean(ious)) if ious else _UNKNOWN_STABILITY
-        soft_arm.append(cv2.GaussianBlur(acc_a, (3, 3), 0))
-        soft_hand.append(cv2.GaussianBlur(acc_h, (3, 3), 0))
-
     radius = max(2, int(np.ceil(2.0 / s)))
-    out_hand = np.zeros((n, H, W), bool)
-    out_arm = np.zeros((n, H, W), bool)
-    conf = np.zeros(n, np.float32)
-    status = np.full(n, Reason.OK, STATUS_DTYPE)
+    out_hand = np.zeros((n, S, H, W), bool)
+    out_arm = np.zeros((n, S, H, W), bool)
+    conf = np.zeros((n, S), np.float32)
+    hs = np.full((n, S), Reason.OK, STATUS_DTYPE)
     min_px = cfg.min_area_frac * H * W
-    for i in range(n):
-        if blank[i]:
-            status[i] = Reason.BLANK_FRAME
-            continue
-        arm_full = _upsample(soft_arm[i], frames[i], radius, cfg.guided_eps)
-        hand_full = _upsample(soft_hand[i], frames[i], radius, cfg.guided_eps) & arm_full
-        if hand_full.sum() < min_px:
-            status[i] = Reason.EMPTY_MASK
-            continue
-        out_arm[i], out_hand[i] = arm_full, hand_full
-        arm_small = soft_arm[i] >= 0.5
-        hand_small = soft_hand[i] >= 0.5
-        skin = float(prior_rule(ycc[i])[hand_small].mean()) if hand_small.any() else 0.0
-        if kps[i] is not None:
-            k = kps[i]
-            grown = cv2.dilate(arm_small.astype(np.uint8), _disk(2)).astype(bool)
-            h, w = arm_small.shape
-            pts = np.round(k.pts[k.valid]).astype(int)
-            inside = (pts[:, 0] >= 0) & (pts[:, 0] < w) & (pts[:, 1] >= 0) & (pts[:, 1] < h)
-            pts = pts[inside]
-            cover = float(grown[pts[:, 1], pts[:, 0]].mean()) if len(pts) else 0.0
-            conf[i] = 0.3 * cover + 0.45 * skin + 0.25 * stability[i]
-        else:
-            conf[i] = cfg.no_keypoint_factor * (0.5 * skin + 0.5 * stability[i])
-        if conf[i] < cfg.min_confidence:
-            status[i] = Reason.LOW_CONFIDENCE
+    n_kp = 0
+    for k in range(S):
+        side_kps = [kps[i][k] for i in range(n)]
+        n_kp += sum(x is not None for x in side_kps)
+        prev_A = [None] + [_kp_transform(side_kps[i - 1], side_kps[i]) for i in range(1, n)]
+        next_A = [_kp_transform(side_kps[i + 1], side_kps[i]) for i in range(n - 1)] + [None]
+        for i in range(n):
+            if blank[i]:
+                hs[i, k] = Reason.BLANK_FRAME
+                continue
+            if handarm[i][k] is None:
+                hs[i, k] = Reason.ABSENT if not use_skin or S > 1 else Reason.EMPTY_MASK
+                continue
+            acc_a = handarm[i][k].astype(np.float32)
+            acc_h = hand[i][k].astype(np.float32)
+            stability = _UNKNOWN_STABILITY
+            if wt > 0:
+                acc_a, acc_h = acc_a * (1 - 2 * wt), acc_h * (1 - 2 * wt)
+                ious = []
+                for j, A in ((i - 1, prev_A[i]), (i + 1, next_A[i])):
+                    if 0 <= j < n and not blank[j] and handarm[j][k] is not None:
+                        wa = _warp(handarm[j][k].astype(np.float32), A)
+                        wh = _warp(hand[j][k].astype(np.float32), A)
+                        ious.append(_iou(handarm[i][k], wa >= 0.5))
+                    else:  # no neighbour: it votes like this frame
+                        wa, wh = handarm[i][k].astype(np.float32), hand[i][k].astype(np.float32)
+                    acc_a += wt * wa
+                    acc_h += wt * wh
+                stability = float(np.mean(ious)) if ious else _UNKNOWN_STABILITY
+            soft_arm = cv2.GaussianBlur(acc_a, (3, 3), 0)
+            soft_hand = cv2.GaussianBlur(acc_h, (3, 3), 0)
+            arm_full = _upsample(soft_arm, frames[i], radius, cfg.guided_eps)
+            hand_full = _upsample(soft_hand, frames[i], radius, cfg.guided_eps) & arm_full
+            if hand_full.sum() < min_px:
+                hs[i, k] = Reason.EMPTY_MASK
+                continue
+            out_arm[i, k], out_hand[i, k] = arm_full, hand_full
+            arm_small, hand_small = soft_arm >= 0.5, soft_hand >= 0.5
+            skin = float(prior_rule(ycc[i])[hand_small].mean()) if hand_small.any() else 0.0
+            kp = kps[i][k]
+            if kp is not None:
+                grown = cv2.dilate(arm_small.astype(np.uint8), _disk(2)).astype(bool)
+                h, w = arm_small.shape
+                pts = np.round(kp.pts[kp.valid]).astype(int)
+                inside = (pts[:, 0] >= 0) & (pts[:, 0] < w) & (pts[:, 1] >= 0) & (pts[:, 1] < h)
+                pts = pts[inside]
+                cover = float(grown[pts[:, 1], pts[:, 0]].mean()) if len(pts) else 0.0
+                conf[i, k] = 0.3 * cover + 0.45 * skin + 0.25 * stability
+            else:
+                conf[i, k] = cfg.no_keypoint_factor * (0.5 * skin + 0.5 * stability)
+            if conf[i, k] < cfg.min_confidence:
+                hs[i, k] = Reason.LOW_CONFIDENCE
+    if S > 1:  # two upsampled masks can overlap again at their seam: the first side keeps it
+        for i in range(n):
+            taken = np.zeros((H, W), bool)
+            for k in range(S):
+                out_arm[i, k] &= ~taken
+                out_hand[i, k] &= out_arm[i, k]
+                taken |= out_arm[i, k]
 
-    n_kp = sum(k is not None for k in kps)
-    if n_kp == n:
+    total = n * S
+    if n_kp == total:
         method = "classical:grabcut+skin"
     elif n_kp == 0:
-        method = "classical:skin-components+grabcut"
+        method = "classical:skin-components+grabcut" if use_skin else "classical:no-hand"
     else:
-        method = "classical:grabcut+skin|skin-components+grabcut"
-    return SegmentResult(out_hand, out_arm, conf, status, method)
+        method = "classical:grabcut+skin|skin-components+grabcut" if use_skin else "classical:grabcut+skin"
+    return SegmentResult(out_hand, out_arm, conf, hs, per_frame(hs), method)
+
+
+def _split_overlaps_all(masks: list[np.ndarray], kp2d: np.ndarray, kval: np.ndarray) -> list[np.ndarray]:
+    """Per-frame overlap split of per-side (n,H,W) masks by nearest skeleton (model path)."""
+    if len(masks) < 2:
+        return masks
+    n, H, W = masks[0].shape
+    out = [m.copy() for m in masks]
+    for i in range(n):
+        sk = [_draw_skeleton((H, W), np.nan_to_num(kp2d[i, k]), kval[i, k], 3, 1.0) if kval[i, k].sum() >= 3 else None
+              for k in range(len(masks))]
+        split = _split_overlaps([m[i] for m in masks], sk)
+        for k in range(len(masks)):
+            out[k][i] = split[k]
+    return out
