@@ -1,0 +1,166 @@
+"""The shared EgoDex episodes through the curate flow: cost per stage, kept fraction, registration.
+
+    .venv/bin/python bench/egodex.py [--root ../shared/data/egodex] [--frames 0:48 | --full]
+        [--resize 960x540] [--embodiment allegro --embodiment xarm_ability] [--workers 2] [--figure out.png]
+
+Runs ``handedit curate --source egodex`` on a local 2-worker Dask cluster and prints, from
+the chunk provenance records: ms per source frame for each per-clip stage, ms per frame
+and embodiment for the others (each task's own wall time, at the working resolution);
+the kept fraction per clip x embodiment x hand; the registration offsets (px at 1080p);
+and how well the robots cover the human hands they replace (kept frames): the share of a
+replaced hand's mask under its robot, and the share left unchanged (still the human).
+``--figure`` writes source | masks | restored background | pseudo-GT (two robot hands) for
+a few frames, made from the run (the EgoDex licence forbids committing it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+from collections import defaultdict
+from pathlib import Path
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "error")
+os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "180")
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def stage_costs(root) -> dict[str, float]:
+    """ms per frame (per-clip stages) or per frame and embodiment (the others), from provenance."""
+    from handedit.storage.ledger import iter_units
+    from handedit.storage.provenance import read_records
+
+    secs, frames = defaultdict(float), defaultdict(int)
+    for unit in iter_units(root):
+        for rec in read_records(root, unit).values():
+            secs[unit.stage] += rec.seconds
+            frames[unit.stage] += rec.stop - rec.start
+    return {s: 1000 * secs[s] / frames[s] for s in secs if frames[s]}
+
+
+def coverage(root, clip: str, emb: str) -> tuple[float, float]:
+    """(share of replaced hands' mask pixels under their robot, share left unchanged) on kept frames."""
+    import numpy as np
+
+    from handedit.reasons import Reason
+    from handedit.storage import Unit
+
+    qc = root[Unit("qc", clip, embodiment=emb).path]
+    kept = np.flatnonzero(qc["status"][:] == Reason.OK)
+    if not kept.size:
+        return float("nan"), float("nan")
+    hs = qc["hand_status"][:]
+    human = root[Unit("segment", clip).path]["hand_mask"]
+    comp = root[Unit("composite", clip, embodiment=emb).path]
+    src = root[Unit("ingest", clip).path]["frames"]
+    under = left = total = 0
+    for t in kept:
+        robot, img, f, h = comp["robot_mask"][t], comp["image"][t], src[t], human[t]
+        for k in np.flatnonzero(hs[t] == Reason.OK):
+            m = h[k]
+            total += m.sum()
+            under += (m & robot[k]).sum()
+            left += (m & (np.abs(img.astype(int) - f).max(-1) <= 2)).sum()
+    return under / max(total, 1), left / max(total, 1)
+
+
+def figure(root, clips: list[str], emb: str, out: Path, per_clip: int = 2) -> None:
+    import cv2
+    import numpy as np
+
+    from handedit.reasons import Reason
+    from handedit.storage import Unit
+
+    rows = []
+    for clip in clips:
+        kept = np.flatnonzero(root[Unit("qc", clip, embodiment=emb).path]["status"][:] == Reason.OK)
+        for t in kept[np.linspace(0, len(kept) - 1, min(per_clip, len(kept))).astype(int)] if len(kept) else []:
+            f = root[Unit("ingest", clip).path]["frames"][t]
+            masks = f.astype(np.float32)
+            seg = root[Unit("segment", clip).path]["handarm_mask"][t]
+            for k, col in enumerate([(40, 80, 255), (255, 60, 40)][: len(seg)]):
+                masks[seg[k]] = 0.5 * masks[seg[k]] + 0.5 * np.array(col)
+            bg = root[Unit("restore_background", clip, scope="hand").path]["background"][t]
+            gt = root[Unit("harmonize", clip, embodiment=emb).path]["image"][t]
+            rows.append(np.hstack([f, masks.astype(np.uint8), bg, gt]))
+    if rows:
+        grid = np.vstack(rows)
+        grid = cv2.resize(grid, None, fx=min(1.0, 2400 / grid.shape[1]), fy=min(1.0, 2400 / grid.shape[1]))
+        cv2.imwrite(str(out), cv2.cvtColor(grid, cv2.COLOR_RGB2BGR))
+        print(f"figure: {out} (source | masks: left blue, right red | restored background | pseudo-GT, {emb})")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--root", default=str(REPO.parent / "shared" / "data" / "egodex"))
+    ap.add_argument("--frames", default="0:48", help="window A:B of every episode")
+    ap.add_argument("--full", action="store_true", help="whole episodes")
+    ap.add_argument("--resize", default="960x540")
+    ap.add_argument("--embodiment", action="append")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--figure", help="write a contact sheet PNG here (not to be committed: CC BY-NC-ND data)")
+    args = ap.parse_args()
+    os.environ.setdefault("HANDEDIT_ASSET_DIRS", str(REPO.parent / "shared" / "assets" / "robots"))
+
+    import numpy as np
+    from distributed import LocalCluster
+    from prefect.testing.utilities import prefect_test_harness
+
+    from handedit.flows.config import ClusterConfig, CurateConfig
+    from handedit.flows.curate import run_curate
+    from handedit.sources import EgoDexTree
+    from handedit.sources.egodex import parse_frames
+    from handedit.storage import Unit, open_store
+    from handedit.storage.summary import run_summary
+
+    embs = args.embodiment or ["allegro", "xarm_ability"]
+    w, h = (int(v) for v in args.resize.split("x"))
+    tree = EgoDexTree(root=Path(args.root), frames=None if args.full else parse_frames(args.frames), resize=(w, h))
+    tmp = Path(tempfile.mkdtemp(prefix="handedit-egodex-"))
+    os.environ.setdefault("PREFECT_HOME", str(tmp / "prefect"))
+    with prefect_test_harness(server_startup_timeout=180), \
+            LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                         dashboard_address="127.0.0.1:0") as cluster:
+        config = CurateConfig(out=tmp / "handedit.zarr", sources=[tree], embodiments=embs, frames_per_chunk=16,
+                              cluster=ClusterConfig(address=cluster.scheduler_address))
+        t0 = time.perf_counter()
+        run_curate(config)
+        wall = time.perf_counter() - t0
+    root = open_store(config.out)
+    clips = sorted(root["clips"].group_keys())
+    n_frames = sum(root[Unit("ingest", c).path]["status"].shape[0] for c in clips)
+    print(f"EgoDex: {len(clips)} clip(s), {n_frames} frames at {w}x{h}, embodiments {embs}, {args.workers} workers, "
+          f"wall {wall:.0f} s ({n_frames * len(embs) / wall:.2f} frame-embodiments/s)")
+    print("\nms per frame (task wall time; per frame and embodiment from retarget on):")
+    for stage, ms in stage_costs(root).items():
+        print(f"  {stage:<20} {ms:8.1f}")
+    print("\nkept fraction (QC OK with this hand's robot), per clip x embodiment x hand:")
+    for u in run_summary(root)["units"]:
+        print(f"  {u['clip']:<34} {u['embodiment']:<14} {str(u['side']):<6} {u['kept']:>4}/{u['frames']:<4} "
+              f"{u['kept'] / max(u['frames'], 1):6.2f}")
+    print("\nregistration: |offset| px at 1080p, median / 90th percentile / max, per clip and hand")
+    for c in clips:
+        reg = root[Unit("registration", c).path]
+        off, hs = reg["offset_px"][:], reg["hand_status"][:]
+        scale = 1920.0 / root[Unit("ingest", c).path].attrs["info"]["width"]
+        for k, side in enumerate(root[Unit("ingest", c).path].attrs["hands"]):
+            d = np.linalg.norm(off[hs[:, k] == 1, k], axis=-1) * scale
+            if d.size:
+                print(f"  {c:<34} {side:<6} {np.median(d):6.1f} {np.percentile(d, 90):6.1f} {d.max():6.1f}")
+    print("\ncoverage on kept frames: share of the replaced hands' masks under their robot / left unchanged")
+    for c in clips:
+        for e in embs:
+            under, left = coverage(root, c, e)
+            print(f"  {c:<34} {e:<14} {under:6.2f} {left:6.3f}")
+    if args.figure:
+        figure(root, clips, embs[0], Path(args.figure))
+
+
+if __name__ == "__main__":
+    main()
