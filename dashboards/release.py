@@ -72,9 +72,13 @@ def samples(root: zarr.Group, per_unit: int = 3) -> str:
 
 
 def render_page(root: zarr.Group, title: str) -> str:
-    runs = root.attrs.get("runs") or []
-    run_rows = [{"started": r.get("started"), "finished": r.get("finished"), "rejections": r.get("rejections"),
-                 "dask dashboard": r.get("dashboard") or "",
+    from handedit.storage.location import location_of
+    from handedit.storage.shards import run_logs, shard_ids
+
+    loc = location_of(root)
+    runs = sorted((log for s in shard_ids(loc) for log in run_logs(loc, s)), key=lambda r: r.get("finished") or "")
+    run_rows = [{"shard": r.get("shard"), "started": r.get("started"), "finished": r.get("finished"),
+                 "complete": r.get("complete"),
                  "chunks ran/skipped/failed": " ".join(f"{s}:{c['ran']}/{c['skipped']}/{c['failed']}" for s, c in r.get("stages", {}).items())}
                 for r in runs[-10:]]
     ledger = read_ledger(root)
@@ -87,7 +91,7 @@ def render_page(root: zarr.Group, title: str) -> str:
 <h1>handedit release / QA: {html.escape(title)}</h1>
 <p>schema {root.attrs.get('schema_version')}, {root.attrs.get('frames_per_chunk')} frames per chunk,
 created {root.attrs.get('created')} by {root.attrs.get('created_by')}</p>
-<h2>Runs</h2>{_table(run_rows, ['started', 'finished', 'chunks ran/skipped/failed', 'rejections', 'dask dashboard'])}
+<h2>Shard runs (last 10)</h2>{_table(run_rows, ['shard', 'started', 'finished', 'complete', 'chunks ran/skipped/failed'])}
 <h2>Kept frames (QC OK)</h2>{_table(kept_table(root), ['clip', 'embodiment', 'frames', 'kept', 'kept %'])}
 <h2>Frames per stage and status</h2>{_table(status_counts(root).to_dict(orient='records'), ['stage', 'status', 'frames'])}
 <h2>Rejections by reason</h2>{_table(by_reason, ['stage', 'reason_name', 'frames'])}

@@ -57,8 +57,11 @@ def build_testset(store: str | Path, bench: str | Path, n_sources: int = 1000, e
     """
     root = open_store(store)
     out = BenchDir(Path(bench))
-    clips = sorted(c for c, v in (root.attrs.get("clips") or {}).items() if "error" not in v)
-    stored_embs = root.attrs.get("embodiments") or {}
+    from handedit.storage.summary import curated_clips
+
+    clips = curated_clips(root)
+    stored_embs = {e: {"scope": get_embodiment(e).track} for c in clips
+                   for e in (root[f"clips/{c}/embodiments"].group_keys() if f"clips/{c}/embodiments" in root else [])}
     wanted = embodiments or sorted(stored_embs)
     unknown = [e for e in wanted if e not in stored_embs]
     if unknown:

@@ -20,7 +20,6 @@ import os
 import sys
 from pathlib import Path
 
-STORE_NAME = "handedit.zarr"
 
 
 def prefect_defaults() -> None:
@@ -34,10 +33,12 @@ def prefect_defaults() -> None:
     os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
 
 
-def store_path(out: str | Path) -> Path:
-    """``--out DIR`` names a run folder; the store is DIR/handedit.zarr (or DIR itself if it ends in .zarr)."""
-    out = Path(out)
-    return out if out.suffix == ".zarr" else out / STORE_NAME
+def store_path(out: str | Path) -> str:
+    """``--out DIR`` names a run folder (or URL); the store is DIR/handedit.zarr (or DIR itself
+    if it ends in .zarr): ``handedit.storage.Location``."""
+    from handedit.storage import Location
+
+    return Location(out).store_url
 
 
 def _build_config(args: argparse.Namespace):
@@ -48,7 +49,8 @@ def _build_config(args: argparse.Namespace):
     if args.config:
         from handedit.flows.curate import load_config
 
-        return load_config(args.config, args.cluster, str(store_path(args.out)) if args.out else None)
+        config = load_config(args.config, args.cluster, args.out)
+        return config.model_copy(update={"take_over": True}) if args.take_over else config
     if not args.out:
         raise SystemExit("handedit curate: --out DIR is required (or --config FILE with an 'out' field)")
     clips: list = []
@@ -77,8 +79,9 @@ def _build_config(args: argparse.Namespace):
         spec = yaml.safe_load(Path(args.cluster).read_text()) or {}
         cluster = ClusterConfig.model_validate(spec.get("cluster", spec))
     extra = {"qc": {"keep": args.keep}} if args.keep else {}
-    return CurateConfig(out=store_path(args.out), clips=clips, sources=sources, embodiments=args.embodiment or ["allegro"],
-                        frames_per_chunk=args.frames_per_chunk, cluster=cluster, **extra)
+    return CurateConfig(out=args.out, clips=clips, sources=sources, embodiments=args.embodiment or ["allegro"],
+                        frames_per_chunk=args.frames_per_chunk, shard_size=args.shard_size, take_over=args.take_over,
+                        cluster=cluster, **extra)
 
 
 def _count(text: str) -> int:
@@ -117,8 +120,10 @@ def cmd_curate(args: argparse.Namespace) -> int:
     except (ValidationError, ValueError) as exc:
         print(f"handedit curate: invalid configuration:\n{exc}", file=sys.stderr)
         return 2
-    n_clips = len(config.clips) + sum(len(t.clips()) for t in config.sources)
-    print(f"curating {n_clips} clip(s) x {len(config.embodiments)} embodiment(s) into {config.out}")
+    what = " + ".join([*([f"{len(config.clips)} clip(s)"] if config.clips else []),
+                       *(f"the {t.kind} tree {t.root}" for t in config.sources)])
+    print(f"curating {what} x {len(config.embodiments)} embodiment(s) into {config.out} "
+          f"(shards of {config.shard_size} clips)")
     where = config.cluster.address or f"a local Dask cluster ({config.cluster.n_workers} worker processes)"
     print(f"running on {where}; the Dask dashboard link follows when the cluster is up")
     from handedit.storage import StoreError
@@ -135,6 +140,11 @@ def cmd_curate(args: argparse.Namespace) -> int:
 def print_summary(summary: dict) -> None:
     print(f"\nstore:          {summary['store']}")
     print(f"dask dashboard: {summary['dashboard'] or '(not available)'}")
+    sh = summary.get("shards", {})
+    print(f"shards:         {sh.get('ran', 0)} ran, {sh.get('skipped', 0)} complete (skipped), {sh.get('held', 0)} held by "
+          f"another driver, {sh.get('incomplete', 0)} left incomplete (re-run to retry)")
+    for shard, who in summary.get("held_by_others", {}).items():
+        print(f"  shard {shard} is held by {who}: run again later, or --take-over once that driver is gone")
     print("\nchunks per stage (ran / skipped / failed):")
     for stage, c in summary["stages"].items():
         print(f"  {stage:<20} {c['ran']:>5} {c['skipped']:>8} {c['failed']:>7}")
@@ -151,7 +161,7 @@ def print_summary(summary: dict) -> None:
         print("\nstage errors (first 10):")
         for e in summary["errors"][:10]:
             print(f"  {e}")
-    run_dir = Path(summary["store"]).parent
+    run_dir = summary["store"].rsplit("/", 1)[0]
     print(f"\nledger: handedit ledger {run_dir}    QA page: handedit dashboard {run_dir}")
 
 
@@ -159,7 +169,7 @@ def _open(args: argparse.Namespace):
     from handedit.storage import StoreError, open_store
 
     try:
-        return open_store(store_path(args.store))
+        return open_store(args.store)
     except StoreError as exc:
         raise SystemExit(f"handedit: {exc}") from None
 
@@ -184,21 +194,22 @@ def cmd_status(args: argparse.Namespace) -> int:
     if args.json:
         from handedit.storage.summary import run_summary
 
-        print(json.dumps(run_summary(root, str(store_path(args.store))), indent=1))
+        print(json.dumps(run_summary(root, store_path(args.store)), indent=1))
         return 0
     print(status_counts(root, by_side=True).fillna("-").to_string(index=False))
-    runs = root.attrs.get("runs") or []
-    if runs:
-        print("\nlast run:", json.dumps(runs[-1]["stages"]))
     return 0
 
 
 def cmd_dashboard(args: argparse.Namespace) -> int:
     from handedit.dashboards.release import write_page
 
-    store = store_path(args.store)
-    out = Path(args.out) if args.out else store.parent / "qa.html"
-    print(f"wrote {write_page(_open(args), out, title=str(store.parent))}")
+    from handedit.storage import Location
+
+    loc = Location(args.store)
+    if not args.out and not loc.is_local:
+        raise SystemExit("handedit dashboard: the run is on object storage; pass --out PAGE.html (a local file)")
+    out = Path(args.out) if args.out else Path(loc.root) / "qa.html"
+    print(f"wrote {write_page(_open(args), out, title=loc.url)}")
     return 0
 
 
@@ -211,7 +222,7 @@ def parser() -> argparse.ArgumentParser:
 
     c = sub.add_parser("curate", help="run the curation flow (segment -> ... -> harmonize -> QC)")
     c.add_argument("--demo", action="store_true", help="synthetic clips with ground truth (the embedded default)")
-    c.add_argument("--out", help="run folder (the store is OUT/handedit.zarr)")
+    c.add_argument("--out", help="run folder or URL, e.g. runs/demo or s3://bucket/prefix (the store is OUT/handedit.zarr)")
     c.add_argument("--config", help="YAML CurateConfig")
     c.add_argument("--video", action="append", help="a video file (repeatable)")
     c.add_argument("--keypoints", help="keypoints .npy/.npz for --video (MANO order, camera frame, metres)")
@@ -233,7 +244,9 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("--width", type=int, default=640)
     c.add_argument("--height", type=int, default=480)
     c.add_argument("--seed", type=int, default=0)
-    c.add_argument("--frames-per-chunk", type=int, default=16, help="frames per task and per Zarr chunk")
+    c.add_argument("--frames-per-chunk", type=int, default=16, help="frames per Zarr chunk (fixed per store)")
+    c.add_argument("--shard-size", type=int, default=64, help="clips per shard (one flow run and one claim each)")
+    c.add_argument("--take-over", action="store_true", help="claim shards another driver holds (once it is gone)")
     c.add_argument("--workers", type=int, default=2, help="local Dask worker processes")
     c.add_argument("--address", help="Dask scheduler address to run on an existing cluster")
     c.add_argument("--cluster", help="cluster spec YAML (deploy/cluster/*.yaml)")

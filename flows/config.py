@@ -8,10 +8,12 @@ what reads its output.
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Annotated
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator
 
 from handedit.embodiments import get_embodiment
 from handedit.qc import QCConfig
@@ -54,33 +56,43 @@ class ClusterConfig(BaseModel):
             return self.no_worker_timeout_s
         return 1800.0 if (self.address or self.cluster_class) else 120.0
 
-    def task_runner(self):
-        from prefect_dask import DaskTaskRunner
-
+    @contextmanager
+    def connect(self):
+        """The scheduler address for the run: the given one, or a cluster started for the
+        run (``cluster_class``, else a LocalCluster of ``n_workers`` processes on 127.0.0.1),
+        closed at the end. Shard flows reach it through ``DaskTaskRunner(address=...)``."""
         if self.address:
-            return DaskTaskRunner(address=self.address)
+            yield self.address
+            return
         if self.cluster_class:
-            return DaskTaskRunner(cluster_class=self.cluster_class, cluster_kwargs=self.cluster_kwargs,
-                                  adapt_kwargs=self.adapt)
-        return DaskTaskRunner(
-            cluster_class="distributed.LocalCluster",
-            cluster_kwargs={
-                "n_workers": self.n_workers,
-                "threads_per_worker": self.threads_per_worker,
-                "processes": True,
-                "host": "127.0.0.1",
-                "dashboard_address": self.dashboard_address,
-                "memory_limit": self.memory_limit,
-            },
-        )
+            import importlib
+
+            mod, _, name = self.cluster_class.rpartition(".")
+            cluster = getattr(importlib.import_module(mod), name)(**self.cluster_kwargs)
+            if self.adapt:
+                cluster.adapt(**self.adapt)
+        else:
+            from distributed import LocalCluster
+
+            cluster = LocalCluster(n_workers=self.n_workers, threads_per_worker=self.threads_per_worker, processes=True,
+                                   host="127.0.0.1", dashboard_address=self.dashboard_address, memory_limit=self.memory_limit)
+        with cluster:
+            yield cluster.scheduler_address
+
+
+Url = Annotated[str, BeforeValidator(lambda v: str(v))]
 
 
 class CurateConfig(BaseModel):
-    out: Path = Field(description="the store, e.g. runs/demo/handedit.zarr")
+    out: Url = Field(description="the run folder or its store: runs/demo, runs/demo/handedit.zarr, s3://bucket/prefix")
     clips: list[SourceSpec] = Field(default_factory=list, description="explicit clips")
     sources: list[TreeSpec] = Field(default_factory=list, description="dataset trees, e.g. {kind: egodex, root: DIR}")
     embodiments: list[str] = ["allegro"]
-    frames_per_chunk: int = Field(16, ge=1, description="frames per task and per chunk; fixed per store")
+    frames_per_chunk: int = Field(16, ge=1, description="frames per chunk; fixed per store")
+    shard_size: int = Field(64, ge=1, description="clips per shard: a shard is one flow run and one claim")
+    shards_in_flight: int = Field(2, ge=1, description="shard flow runs at a time (the driver holds only these)")
+    claim_lease_s: float = Field(600.0, gt=0, description="a shard claim lapses this long after its last renewal")
+    take_over: bool = Field(False, description="claim shards even when another driver's claim looks live")
     registration: RegistrationConfig = RegistrationConfig()
     segment: SegmentConfig = SegmentConfig()
     restore_background: RestoreConfig = RestoreConfig()

@@ -1,41 +1,52 @@
-"""The curate flow: source clips -> harmonized robot composites, on a Dask cluster.
+"""The curate flows: source clips -> harmonized robot composites, sharded over a Dask cluster.
 
-    ingest -> segment -> restore_background (per scope: hand | hand_arm)
-           -> per embodiment: retarget -> render -> composite -> harmonize -> qc
+    curate (the driver)                 plans shards lazily, skips complete ones, claims the rest
+      curate-shard (one flow run each)  per clip: curate_clip -> per embodiment: curate_embodiment
 
-The flow driver plans clips x embodiments, creates every array (it is the only process
-that creates arrays or writes attributes), then schedules chunk tasks on the Dask task
-runner as their inputs complete, skipping chunks whose provenance is current, and
-records each chunk's provenance and rejections as results arrive.
+The driver lists the sources one group at a time, cuts shards (``handedit.flows.plan``),
+and for each shard reads one manifest: a shard whose last run covered this exact plan and
+left every chunk current is skipped. Otherwise it claims the shard (``storage.shards``:
+create-if-absent, so two drivers on one store work on disjoint shards) and runs it as a
+subflow on the run's Dask cluster, at most ``shards_in_flight`` at a time. A shard flow
+submits 1 + E Prefect tasks per clip (``handedit.tasks.clip``: each walks its chunks), then
+writes the shard's index and ledger partitions, its run log and its manifest.
+
+Failures: a chunk that fails is recorded in its unit (``STAGE_ERROR``) and the rest goes
+on; a clip whose source cannot be opened is one clip-level row (``SOURCE_UNREADABLE``); a
+shard with failures stays incomplete, so the next run retries exactly what failed.
 """
 
 from __future__ import annotations
 
-import fnmatch
+import contextvars
 import hashlib
 import json
 import subprocess
-from dataclasses import dataclass
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass
 from functools import lru_cache
 from pathlib import Path
 
 from prefect import flow, get_run_logger
-from prefect.context import get_run_context
 from tqdm import tqdm
 
 import handedit
-from handedit.flows.config import CurateConfig
-from handedit.flows.dag import ClipPlan, Node, NodeId, build_nodes
-from handedit.flows.scheduler import DagResult, Prepared, run_dag
 from handedit.embodiments import EmbodimentError, describe_embodiment, get_embodiment, resolve_urdf
+from handedit.flows.config import CurateConfig
+from handedit.flows.plan import ShardPlan, iter_shards, run_key
 from handedit.reasons import Reason
-from handedit.sources import SourceError, open_source
-from handedit.storage import Unit, create_or_open_store, create_unit, read_records, write_ledger_table, write_records
+from handedit.storage import Location, create_or_open_store
+from handedit.storage.layout import SCHEMA_VERSION
 from handedit.storage.ledger import read_ledger, status_counts
-from handedit.storage.provenance import ChunkRecord
-from handedit.storage.store import create_previews, dumps, jsonable, now_iso, set_attrs
-from handedit.tasks import STAGE_TASKS
-from handedit.tasks.common import RETRIES, ChunkJob, failure_record, is_transient
+from handedit.storage.shards import (INDEX, LEDGER, DEFAULT_LEASE_S, is_complete, new_holder, read_manifest, release,
+                                     renew, try_claim, write_manifest, write_partition, write_run_log)
+from handedit.storage.store import jsonable, now_iso
+from handedit.storage.summary import index_rows
+from handedit.tasks.clip import ClipJob, EmbodimentJob, curate_clip, curate_embodiment, stage_version_params
+
+STAGE_NAMES = ("ingest", "registration", "segment", "restore_background", "retarget", "render", "composite", "harmonize", "qc")
 
 
 def code_version() -> str:
@@ -59,43 +70,9 @@ class EmbodimentPlan:
     urdf_digest: str = ""  # content of the resolved (or composed) URDF
 
 
-def plan_clips(config: CurateConfig) -> tuple[list[ClipPlan], dict[str, str]]:
-    """Open each source on the driver (metadata only); a bad source is a clip-level rejection."""
-    plans, errors = [], {}
-    for spec in config.all_clips():
-        try:
-            info = open_source(spec).info()
-        except SourceError as exc:
-            errors[spec.id] = str(exc)
-            continue
-        plans.append(
-            ClipPlan(
-                clip=info.clip_id,
-                n_frames=info.n_frames,
-                height=info.height,
-                width=info.width,
-                intrinsics=info.intrinsics.to_dict(),
-                source_json=dumps(spec.model_dump(mode="json")),
-                fingerprint=info.fingerprint,
-                has_object=info.has_object,
-                has_gt=bool(info.ground_truth),
-                info=jsonable({**vars(info), "intrinsics": info.intrinsics.to_dict()}),
-                hands=tuple(info.hands),
-                has_arm=info.has_arm,
-                has_keypoints=info.has_keypoints,
-                world=info.world,
-                keypoints_exact=info.keypoints_exact,
-            )
-        )
-    ids = [p.clip for p in plans]
-    if len(set(ids)) != len(ids):
-        raise ValueError(f"clip ids must be unique, got {ids}")
-    return plans, errors
-
-
 def plan_embodiments(ids: list[str]) -> list[EmbodimentPlan]:
-    """Resolve each embodiment's track and joints; missing or broken assets reject only
-    that embodiment's frames (ids themselves were validated with the config)."""
+    """Resolve each embodiment's track and joints once per run; missing or broken assets
+    reject only that embodiment's frames (ids themselves were validated with the config)."""
     plans = []
     for emb_id in ids:
         track = get_embodiment(emb_id).track
@@ -106,48 +83,6 @@ def plan_embodiments(ids: list[str]) -> list[EmbodimentPlan]:
         except EmbodimentError as exc:
             plans.append(EmbodimentPlan(emb_id, track, [], f"{type(exc).__name__}: {exc}", int(exc.reason)))
     return plans
-
-
-def _create_units(root, config: CurateConfig, clip: ClipPlan, embs: list[EmbodimentPlan]) -> None:
-    f, sizes = config.frames_per_chunk, {"H": clip.height, "W": clip.width, "S": len(clip.hands)}
-    hands = {"hands": list(clip.hands)}
-    create_unit(root, Unit("ingest", clip.clip), clip.n_frames, sizes, f, clip.has_object, clip.has_gt,
-                attrs={"info": clip.info, **hands}, has_arm=clip.has_arm)
-    create_unit(root, Unit("registration", clip.clip), clip.n_frames, sizes, f, attrs=hands, has_arm=clip.has_arm)
-    create_unit(root, Unit("segment", clip.clip), clip.n_frames, sizes, f, attrs=hands)
-    for scope in sorted({e.scope for e in embs}):
-        create_unit(root, Unit("restore_background", clip.clip, scope=scope), clip.n_frames, sizes, f)
-    for emb in embs:
-        for stage in ("retarget", "render", "composite", "harmonize", "qc"):
-            extra = {**hands, **({"joint_names": emb.joint_names} if stage == "retarget" else {})}
-            create_unit(root, Unit(stage, clip.clip, embodiment=emb.id), clip.n_frames,
-                        {**sizes, "dof": len(emb.joint_names)}, f, attrs=extra)
-        if emb.scope == "hand_arm":
-            for side in clip.hands:
-                create_previews(root, Unit("retarget", clip.clip, embodiment=emb.id), clip.height, clip.width, side)
-
-
-def stage_version_params(config: CurateConfig, stage: str) -> tuple[int, dict]:
-    """A stage's code version (its config class's VERSION) and parameters."""
-    cfg = config.stage_config(stage)
-    return int(getattr(type(cfg), "VERSION", 1)), cfg.model_dump(mode="json")
-
-
-def add_asset_inputs(config: CurateConfig, nodes: list[Node], embs: list[EmbodimentPlan]) -> None:
-    """Files a stage reads besides the store are inputs too, by content: a stage's model
-    weights, and the robot's URDF for the stages that load it. New weights or a new robot
-    description at the same path change the provenance key and re-run those stages."""
-    models: dict[str, str] = {}
-    for stage in {n.unit.stage for n in nodes}:
-        path = getattr(config.stage_config(stage), "model_path", None)
-        if path:
-            models[stage] = file_digest(Path(path))
-    urdfs = {e.id: e.urdf_digest for e in embs}
-    for node in nodes:
-        if node.unit.stage in models:
-            node.fixed_inputs["model"] = models[node.unit.stage]
-        if node.unit.stage in ("retarget", "render") and node.unit.embodiment:
-            node.fixed_inputs["urdf"] = urdfs.get(node.unit.embodiment, "")
 
 
 def file_digest(path: Path) -> str:
@@ -168,153 +103,268 @@ def _file_digest(path: str, size: int, mtime_ns: int) -> str:
     return h.hexdigest()
 
 
-def _matches_fault(config: CurateConfig, unit: Unit) -> bool:
-    names = [f"{unit.stage}:{unit.clip}", f"{unit.stage}:{unit.clip}:{unit.embodiment or unit.scope or ''}"]
-    return any(fnmatch.fnmatchcase(n, pat) for pat in config.inject_faults for n in names)
+def model_digests(config: CurateConfig) -> dict[str, str]:
+    """Content of each stage's model file (new weights at the same path change the run key)."""
+    out = {}
+    for stage in STAGE_NAMES:
+        path = getattr(config.stage_config(stage), "model_path", None)
+        if path:
+            out[stage] = file_digest(Path(path))
+    return out
+
+
+def the_run_key(config: CurateConfig, embs: list[EmbodimentPlan]) -> str:
+    params = {s: stage_version_params(config, s) for s in STAGE_NAMES}
+    return run_key(config.frames_per_chunk, {"params": params, "models": model_digests(config)},
+                   [{"id": e.id, "scope": e.scope, "urdf": e.urdf_digest, "error": e.error} for e in embs], SCHEMA_VERSION)
+
+
+# ----------------------------------------------------------------------------- one shard
+
+
+def _merge(into: dict, stages: dict) -> None:
+    for stage, c in stages.items():
+        t = into.setdefault(stage, {"ran": 0, "skipped": 0, "failed": 0})
+        for k in t:
+            t[k] += c.get(k, 0)
+
+
+@flow(name="curate-shard", flow_run_name="shard-{shard_id}")
+def curate_shard(config_json: str, shard_id: str, specs_json: list[str], embodiments: list[dict], run_id: str,
+                 digest: str, code: str) -> dict:
+    """One shard: 1 + E tasks per clip on the run's cluster, then the shard's bookkeeping."""
+    from handedit.sources import parse_spec
+
+    config = CurateConfig.model_validate_json(config_json)
+    loc = Location(config.out)
+    started = now_iso()
+    scopes = tuple(sorted({e["scope"] for e in embodiments}))
+    clip_futures, emb_futures = [], []
+    for spec_json in specs_json:
+        clip_id = parse_spec(json.loads(spec_json)).id
+        fc = curate_clip.submit(ClipJob(loc.store_url, spec_json, config_json, scopes, code), clip_id=clip_id)
+        clip_futures.append(fc)
+        for emb in embodiments:
+            emb_futures.append(curate_embodiment.submit(EmbodimentJob(loc.store_url, clip_id, emb, config_json, code),
+                                                        emb_id=emb["id"], wait_for=[fc]))
+    stages: dict = {}
+    errors, source_errors, task_failures = [], {}, []
+    for fut in [*clip_futures, *emb_futures]:
+        res = fut.result(raise_on_failure=False)
+        if not isinstance(res, dict):
+            task_failures.append(f"{fut.task_run_id}: {res!r}")
+            continue
+        _merge(stages, res["stages"])
+        errors += res["errors"]
+        if res.get("source_error") and res["clip"] not in source_errors and "could not be ingested" not in res["source_error"]:
+            source_errors[res["clip"]] = res["source_error"]
+    from handedit.storage import open_store
+
+    root = open_store(loc)
+    clips = [parse_spec(json.loads(s)).id for s in specs_json]
+    ok_clips = [c for c in clips if c not in source_errors]
+    written = time.time()
+    index = index_rows(root, ok_clips, source_errors, {e["id"]: e for e in embodiments})
+    index["shard"], index["written"] = shard_id, written
+    write_partition(loc, INDEX, shard_id, index)
+    ledger = read_ledger(root, clips=ok_clips, source_errors=source_errors)
+    ledger["shard"], ledger["written"] = shard_id, written
+    write_partition(loc, LEDGER, shard_id, ledger)
+    # complete: nothing to retry. Chunks an embodiment without assets rejects are the plan's
+    # own outcome (they fail identically until its assets, hence the run key, change).
+    complete = not task_failures and not errors
+    log = {"run": run_id, "shard": shard_id, "started": started, "finished": now_iso(), "stages": stages,
+           "errors": errors[:50], "task_failures": task_failures, "clip_errors": source_errors, "complete": complete}
+    write_run_log(loc, shard_id, run_id, log)
+    write_manifest(loc, shard_id, {"shard": shard_id, "clips": clips, "digest": digest, "complete": complete,
+                                   "embodiments": embodiments, "updated": now_iso(), "run": run_id, "stages": stages})
+    return log
+
+
+# ----------------------------------------------------------------------------- the driver
 
 
 class ClusterLost(RuntimeError):
     """The Dask cluster has had no worker for longer than the configured timeout."""
 
 
-def _worker_watchdog(timeout_s: float):
-    """An ``on_idle`` callback: fail loudly instead of waiting forever on a dead cluster."""
-    since: list[float] = []
+class _Leases:
+    """Renews this driver's shard claims while their shards run (a background thread)."""
 
-    def on_idle(idle_s: float) -> None:
-        try:
-            n = len(get_run_context().task_runner.client.scheduler_info(n_workers=-1)["workers"])
-        except Exception:
-            n = -1  # cannot tell; keep waiting
-        if n != 0:
-            since.clear()
-            return
-        since.append(idle_s)
-        if idle_s - since[0] >= timeout_s:
-            raise ClusterLost(
-                f"no chunk finished for {idle_s:.0f} s and the Dask cluster has had no worker for "
-                f"{idle_s - since[0]:.0f} s; check the workers' logs (the dashboard link above), restart "
-                f"them, and re-run: finished chunks are kept and skipped"
-            )
+    def __init__(self, loc: Location, lease_s: float):
+        self.loc, self.lease_s = loc, lease_s
+        self.claims: dict[str, object] = {}
+        self.lost: set[str] = set()
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
 
-    return on_idle
+    def _run(self) -> None:
+        while not self._stop.wait(max(1.0, self.lease_s / 3)):
+            with self._lock:
+                claims = list(self.claims.values())
+            for c in claims:
+                if not renew(self.loc, c, self.lease_s):
+                    self.lost.add(c.shard)
+
+    def add(self, claim) -> None:
+        with self._lock:
+            self.claims[claim.shard] = claim
+
+    def done(self, shard: str) -> None:
+        with self._lock:
+            c = self.claims.pop(shard, None)
+        if c is not None:
+            release(self.loc, c)
+
+    def close(self) -> None:
+        self._stop.set()
+        with self._lock:
+            claims = list(self.claims.values())
+        for c in claims:
+            release(self.loc, c)
 
 
-def _dashboard_link() -> str | None:
+def _watch_workers(address: str, timeout_s: float, stop: threading.Event, lost: list) -> None:
+    """Fail loudly instead of waiting forever on a cluster that lost every worker."""
+    from distributed import Client
+
     try:
-        return get_run_context().task_runner.client.dashboard_link
-    except Exception:
+        client = Client(address, timeout=30)
+    except Exception:  # noqa: BLE001 - cannot tell; the shard flows will report
+        return
+    since = None
+    try:
+        while not stop.wait(5.0):
+            try:
+                n = len(client.scheduler_info(n_workers=-1)["workers"])
+            except Exception:  # noqa: BLE001
+                continue
+            if n:
+                since = None
+                continue
+            since = since or time.time()
+            if time.time() - since >= timeout_s:
+                lost.append(ClusterLost(f"the Dask cluster at {address} has had no worker for {time.time() - since:.0f} s; "
+                                        f"check the workers' logs, restart them and re-run: finished chunks are kept"))
+                return
+    finally:
+        client.close()
+
+
+def _dashboard(address: str) -> str | None:
+    try:
+        from distributed import Client
+
+        with Client(address, timeout=30) as c:
+            return c.dashboard_link
+    except Exception:  # noqa: BLE001
         return None
 
 
 @flow(name="curate")
 def curate(config: CurateConfig, progress: bool = False) -> dict:
-    """Curate ``config.clips`` x ``config.embodiments`` into the store at ``config.out``."""
+    """Curate ``config`` (clips and source trees) x ``config.embodiments`` into ``config.out``."""
+    from prefect_dask import DaskTaskRunner
+
     logger = get_run_logger()
+    loc = Location(config.out)
     version, started = code_version(), now_iso()
-    root = create_or_open_store(config.out, config.frames_per_chunk, version)
-    clips, clip_errors = plan_clips(config)
+    create_or_open_store(loc, config.frames_per_chunk, version)
     embs = plan_embodiments(config.embodiments)
-    registry = dict(root.attrs.get("clips") or {})
-    for c in clips:
-        registry[c.clip] = {"source": json.loads(c.source_json), "n_frames": c.n_frames, "fingerprint": c.fingerprint}
-    for clip_id, err in clip_errors.items():
-        registry[clip_id] = {"error": err, "reason": int(Reason.SOURCE_UNREADABLE)}
-        logger.error("clip %s rejected: %s", clip_id, err)
-    set_attrs(root, "", {"clips": registry, "embodiments": {e.id: {"scope": e.scope, "dof": len(e.joint_names), "error": e.error} for e in embs}})
     for e in embs:
         if e.error:
             logger.error("embodiment %s rejected: %s", e.id, e.error)
-    for c in clips:
-        _create_units(root, config, c, embs)
+    key = the_run_key(config, embs)
+    emb_dicts = [asdict(e) for e in embs]
+    holder = new_holder()
+    config_json = config.model_dump_json()
+    summary = {"store": loc.store_url, "stages": {}, "errors": [], "clip_errors": {}, "run": holder,
+               "shards": {"ran": 0, "skipped": 0, "held": 0, "incomplete": 0}, "held_by_others": {}}
+    bar = tqdm(desc="curate", unit="shard", disable=not progress)
+    with config.cluster.connect() as address:
+        summary["dashboard"] = link = _dashboard(address)
+        logger.info("Dask dashboard: %s", link)
+        if progress:
+            tqdm.write(f"Dask dashboard: {link or '(not available)'}")
+        leases = _Leases(loc, config.claim_lease_s)
+        stop, lost = threading.Event(), []
+        watchdog = threading.Thread(target=_watch_workers, args=(address, config.cluster.worker_timeout, stop, lost), daemon=True)
+        watchdog.start()
+        shard_flow = curate_shard.with_options(task_runner=DaskTaskRunner(address=address))
+        pool = ThreadPoolExecutor(config.shards_in_flight)
+        in_flight: dict = {}
 
-    scopes = {e.id: e.scope for e in embs}
-    window = config.restore_background.window
-    nodes = [n for c in clips for n in build_nodes(c, scopes, config.frames_per_chunk, window)]
-    add_asset_inputs(config, nodes, embs)
-    units = sorted({n.unit for n in nodes})
-    stage_params = {stage: stage_version_params(config, stage) for stage in {u.stage for u in units}}
-    for unit in units:
-        version_, params = stage_params[unit.stage]
-        set_attrs(root, unit.path, {"stage": unit.stage, "version": version_, "params": params})
-    stored = {u: read_records(root, u) for u in units}
-    failed_embs = {e.id: e for e in embs if e.error}
-    jobs: dict[NodeId, ChunkJob] = {}
+        def collect(block: bool) -> None:
+            while in_flight and (block or len(in_flight) >= config.shards_in_flight):
+                done = next((s for s, f in in_flight.items() if f.done()), None)
+                if done is None:
+                    if lost:
+                        raise lost[0]
+                    time.sleep(0.2)
+                    continue
+                log = in_flight.pop(done).result()
+                leases.done(done)
+                _merge(summary["stages"], log["stages"])
+                summary["errors"] += log["errors"] + log["task_failures"]
+                summary["clip_errors"].update(log["clip_errors"])
+                summary["shards"]["ran"] += 1
+                summary["shards"]["incomplete"] += 0 if log["complete"] else 1
+                bar.update()
+            if lost:
+                raise lost[0]
 
-    def job_for(prep: Prepared) -> ChunkJob:
-        n = prep.node
-        job = ChunkJob(str(config.out), n.unit, n.chunk, n.start, n.stop, prep.key, prep.version, prep.params,
-                       prep.inputs, version, n.context, fault=_matches_fault(config, n.unit))
-        jobs[n.id] = job
-        return job
-
-    def submit(prep: Prepared):
-        return STAGE_TASKS[prep.node.unit.stage].submit(job_for(prep))
-
-    def complete(prep: Prepared, handle) -> tuple[dict, bool]:
-        result = handle.result(raise_on_failure=False)
-        if isinstance(result, dict):
-            return result, False
-        exc = result if isinstance(result, BaseException) else RuntimeError(f"task ended without a result: {result!r}")
-        reason = Reason(int(getattr(exc, "reason", Reason.STAGE_ERROR)))
-        attempts = RETRIES + 1 if is_transient(exc) else 1
-        logger.warning("%s chunk %d failed: %s", prep.node.unit.label, prep.node.chunk, exc)
-        return failure_record(jobs[prep.node.id], root, reason, f"{type(exc).__name__}: {exc}", attempts), True
-
-    def prefail(prep: Prepared) -> dict | None:
-        emb = failed_embs.get(prep.node.unit.embodiment or "")
-        if emb is None or prep.node.unit.stage != "retarget":
-            return None
-        return failure_record(job_for(prep), root, Reason(emb.reason), emb.error or "", 0)
-
-    def on_record(node: Node, record: dict) -> None:
-        write_records(root, node.unit, [ChunkRecord.from_json(record)])
-
-    link = _dashboard_link()
-    logger.info("Dask dashboard: %s", link)
-    if progress:
-        tqdm.write(f"Dask dashboard: {link or '(not available)'}")
-    bar = tqdm(total=len(nodes), desc="curate", unit="chunk", disable=not progress)
-    try:
-        result = run_dag(nodes, stage_params.__getitem__, lambda nid: _stored(stored, nid), submit, complete,
-                         prefail, on_record, bar.update, on_idle=_worker_watchdog(config.cluster.worker_timeout))
-    finally:
-        bar.close()
-    return _finish(root, config, result, started, link, clip_errors)
+        try:
+            for shard in iter_shards(config.sources, config.clips, config.shard_size):
+                digest = shard.digest(key)
+                if is_complete(read_manifest(loc, shard.id), digest):
+                    summary["shards"]["skipped"] += 1
+                    bar.update()
+                    continue
+                claim, other = try_claim(loc, shard.id, holder, config.claim_lease_s, take_over=config.take_over)
+                if claim is None:
+                    summary["shards"]["held"] += 1
+                    summary["held_by_others"][shard.id] = other.describe()
+                    logger.warning("shard %s is held by %s; skipped (run again later, or pass --take-over once "
+                                   "that driver is gone)", shard.id, other.describe())
+                    continue
+                leases.add(claim)
+                collect(block=False)
+                args = (config_json, shard.id, [s.model_dump_json() for s in shard.specs], emb_dicts, holder, digest, version)
+                in_flight[shard.id] = pool.submit(contextvars.copy_context().run, shard_flow, *args)
+            collect(block=True)
+        finally:
+            stop.set()
+            pool.shutdown(wait=True)
+            leases.close()
+            bar.close()
+    for clip_id, err in summary["clip_errors"].items():
+        logger.error("clip %s rejected: %s", clip_id, err)
+    return _finish(loc, summary, started)
 
 
-def _stored(stored: dict, node_id: NodeId) -> dict | None:
-    unit, chunk = node_id
-    rec = stored.get(unit, {}).get(chunk)
-    return rec.to_json() if rec is not None else None
+def _finish(loc: Location, summary: dict, started: str) -> dict:
+    from handedit.storage import open_store
+    from handedit.storage.summary import read_index
 
-
-def _finish(root, config: CurateConfig, result: DagResult, started: str, link: str | None, clip_errors: dict) -> dict:
-    n_rejections = write_ledger_table(root)
-    counts = {stage: vars(c) for stage, c in result.counts.items()}
-    run = {"started": started, "finished": now_iso(), "dashboard": link, "stages": counts, "errors": result.errors[:50],
-           "rejections": n_rejections, "clip_errors": clip_errors}
-    set_attrs(root, "", {"runs": [*(root.attrs.get("runs") or []), run]})
-    status = status_counts(root)
-    ledger = read_ledger(root)
+    root = open_store(loc)
+    index = read_index(loc)
+    clips = sorted(set(index.loc[index["error"].astype(str) == "", "clip"])) if index is not None else []
+    summary["status"] = status_counts(root, clips=clips).to_dict(orient="records")
+    ledger = read_ledger(root, clips=clips)
     by_reason = ledger.groupby(["stage", "reason_name"]).size().to_dict() if len(ledger) else {}
-    return {
-        "store": str(config.out),
-        "dashboard": link,
-        "stages": counts,
-        "status": status.to_dict(orient="records"),
-        "rejections": {f"{s}:{r}": int(n) for (s, r), n in by_reason.items()},
-        "errors": result.errors,
-        "clip_errors": clip_errors,
-    }
+    summary["rejections"] = {f"{s}:{r}": int(n) for (s, r), n in by_reason.items()}
+    summary["started"], summary["finished"] = started, now_iso()
+    return jsonable(summary)
 
 
 def run_curate(config: CurateConfig, progress: bool = False) -> dict:
-    """Run the flow on the configured Dask cluster (LocalCluster unless an address is set)."""
-    return curate.with_options(task_runner=config.cluster.task_runner())(config, progress=progress)
+    """Run the driver flow (it starts or connects to the Dask cluster the config names)."""
+    return curate(config, progress=progress)
 
 
-__all__ = ["curate", "run_curate", "CurateConfig", "code_version"]
+__all__ = ["curate", "curate_shard", "run_curate", "CurateConfig", "code_version"]
 
 
 def load_config(config_path: str | Path, cluster_path: str | Path | None = None, out: str | None = None) -> CurateConfig:
@@ -327,7 +377,7 @@ def load_config(config_path: str | Path, cluster_path: str | Path | None = None,
         spec = yaml.safe_load(Path(cluster_path).read_text()) or {}
         update["cluster"] = type(config.cluster).model_validate(spec.get("cluster", spec))
     if out:
-        update["out"] = Path(out)
+        update["out"] = str(out)
     return config.model_copy(update=update) if update else config
 
 

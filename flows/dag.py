@@ -1,5 +1,9 @@
 """The curate DAG at chunk granularity: which chunk of which stage reads what.
 
+The nodes of one clip's per-clip stages (``clip_nodes``) and of one clip x embodiment
+(``embodiment_nodes``) are what the two Prefect tasks of ``handedit.tasks.clip`` walk;
+the driver never builds nodes.
+
 Stages: ingest -> registration -> segment -> restore_background (per scope) and, per
 embodiment, retarget -> render -> composite -> harmonize -> qc. Every per-hand stage
 handles all of a clip's hands in one node (its arrays have a hand axis). A node is one (unit, chunk); its
@@ -58,18 +62,28 @@ class ClipPlan:
     keypoints_exact: bool = False
 
 
-def build_nodes(
-    clip: ClipPlan,
-    embodiments: dict[str, str],
-    frames_per_chunk: int,
-    restore_window: int,
-) -> list[Node]:
-    """All nodes for one clip; ``embodiments`` maps embodiment id -> scope (its track)."""
+def node_inputs(node: Node, records: dict[NodeId, dict]) -> dict[str, str]:
+    """The input fingerprints of a node: its fixed inputs and the digests of the arrays it
+    reads, from its dependencies' records ("absent" where a record is missing)."""
+    inputs = dict(node.fixed_inputs)
+    for dep in node.deps:
+        outputs = (records.get((dep.unit, dep.chunk)) or {}).get("outputs", {})
+        for name in dep.arrays:
+            inputs[f"{dep.unit.path}#{dep.chunk}/{name}"] = outputs.get(name, "absent")
+    return inputs
+
+
+def _ctx(clip: ClipPlan) -> tuple[dict, dict]:
+    base = {"intrinsics": clip.intrinsics, "has_object": clip.has_object, "hands": list(clip.hands),
+            "has_arm": clip.has_arm, "has_keypoints": clip.has_keypoints, "keypoints_exact": clip.keypoints_exact}
+    return base, {"intrinsics": dumps(clip.intrinsics)}
+
+
+def clip_nodes(clip: ClipPlan, scopes, frames_per_chunk: int, restore_window: int) -> list[Node]:
+    """The per-clip stages' nodes: ingest, registration, segment, restore_background per scope."""
     c = clip.clip
     ranges = chunk_ranges(clip.n_frames, frames_per_chunk)
-    base_ctx = {"intrinsics": clip.intrinsics, "has_object": clip.has_object, "hands": list(clip.hands),
-                "has_arm": clip.has_arm, "has_keypoints": clip.has_keypoints, "keypoints_exact": clip.keypoints_exact}
-    camera = {"intrinsics": dumps(clip.intrinsics)}
+    base_ctx, camera = _ctx(clip)
     ingest, registration, segment = Unit("ingest", c), Unit("registration", c), Unit("segment", c)
     arm = ("arm_keypoints", "arm_valid") if clip.has_arm else ()
     reg_out = ("keypoints", "keypoints_valid", "hand_status", "status")
@@ -81,7 +95,7 @@ def build_nodes(
         nodes.append(Node(registration, k, s, e, reg_deps, base_ctx, camera))
         seg_deps = [Dep(ingest, k, ("frames", "status")), Dep(registration, k, (*reg_out, *arm[:1]))]
         nodes.append(Node(segment, k, s, e, seg_deps, base_ctx, camera))
-    for scope in sorted(set(embodiments.values())):
+    for scope in sorted(set(scopes)):
         restore = Unit("restore_background", c, scope=scope)
         for k, (s, e) in enumerate(ranges):
             lo, hi = max(0, s - restore_window), min(clip.n_frames, e + restore_window)
@@ -89,35 +103,52 @@ def build_nodes(
             deps = [Dep(ingest, j, ("frames",)) for j in window]
             deps += [Dep(segment, j, (SCOPE_MASK[scope], "status")) for j in window]
             nodes.append(Node(restore, k, s, e, deps, {"window": [lo, hi]}))
+    return nodes
+
+
+def embodiment_nodes(clip: ClipPlan, emb: str, scope: str, frames_per_chunk: int) -> list[Node]:
+    """One embodiment's nodes on one clip: retarget, render, composite, harmonize, qc."""
+    c = clip.clip
+    ranges = chunk_ranges(clip.n_frames, frames_per_chunk)
+    base_ctx, camera = _ctx(clip)
+    ingest, registration, segment = Unit("ingest", c), Unit("registration", c), Unit("segment", c)
+    restore = Unit("restore_background", c, scope=scope)
+    ret, ren, comp, harm, qc = (Unit(st, c, embodiment=emb) for st in ("retarget", "render", "composite", "harmonize", "qc"))
+    seq = scope == "hand_arm"  # the virtual base is fixed per sequence: one retarget node per clip
+    nodes: list[Node] = []
+    if seq:
+        nodes.append(Node(ret, 0, 0, clip.n_frames, *_hand_arm_retarget(ingest, registration, segment, ranges, base_ctx, clip)))
+    for k, (s, e) in enumerate(ranges):
+        rk = 0 if seq else k  # the retarget node a chunk reads
+        comp_deps = [Dep(restore, k, ("background", "status")),
+                     Dep(ren, k, ("rgba", "depth", "robot_side", "hand_status", "status")),
+                     Dep(segment, k, (SCOPE_MASK[scope], "hand_status")), Dep(ingest, k, ("frames",)),
+                     Dep(registration, k, ("keypoints", "keypoints_valid"))]
+        comp_ctx = {**base_ctx, "scope": scope}
+        if clip.has_object:  # object mask + pose, and the source for its mesh (depth occlusion)
+            comp_deps.append(Dep(ingest, k, ("object_mask", "object_pose")))
+            comp_ctx["source"] = clip.source_json
+        upstream = [(ingest, k), (registration, k), (segment, k), (restore, k), (ret, rk), (ren, k), (comp, k), (harm, k)]
+        if not seq:
+            nodes.append(Node(ret, k, s, e, *_hand_retarget(ingest, registration, segment, k, base_ctx, clip)))
+        nodes += [
+            Node(ren, k, s, e, [Dep(ret, rk, ("qpos", "root_pose", "hand_status", "status"))], base_ctx, camera),
+            Node(comp, k, s, e, comp_deps, comp_ctx),
+            Node(harm, k, s, e, [Dep(comp, k, ("image", "robot_mask", "status"))], base_ctx),
+            Node(qc, k, s, e, [Dep(u, j, ("status", *(("hand_status",) if u.stage in PER_HAND_STAGES else ())))
+                               for u, j in upstream],
+                 {"hands": list(clip.hands),
+                  "upstream": [{"stage": u.stage, "clip": u.clip, "scope": u.scope, "embodiment": u.embodiment}
+                               for u, _ in upstream]}),
+        ]
+    return nodes
+
+
+def build_nodes(clip: ClipPlan, embodiments: dict[str, str], frames_per_chunk: int, restore_window: int) -> list[Node]:
+    """All nodes for one clip; ``embodiments`` maps embodiment id -> scope (its track)."""
+    nodes = clip_nodes(clip, embodiments.values(), frames_per_chunk, restore_window)
     for emb, scope in embodiments.items():
-        restore = Unit("restore_background", c, scope=scope)
-        ret, ren, comp, harm, qc = (Unit(st, c, embodiment=emb) for st in ("retarget", "render", "composite", "harmonize", "qc"))
-        seq = scope == "hand_arm"  # the virtual base is fixed per sequence: one retarget node per clip
-        if seq:
-            nodes.append(Node(ret, 0, 0, clip.n_frames, *_hand_arm_retarget(ingest, registration, segment, ranges, base_ctx, clip)))
-        for k, (s, e) in enumerate(ranges):
-            rk = 0 if seq else k  # the retarget node a chunk reads
-            comp_deps = [Dep(restore, k, ("background", "status")),
-                         Dep(ren, k, ("rgba", "depth", "robot_side", "hand_status", "status")),
-                         Dep(segment, k, (SCOPE_MASK[scope], "hand_status")), Dep(ingest, k, ("frames",)),
-                         Dep(registration, k, ("keypoints", "keypoints_valid"))]
-            comp_ctx = {**base_ctx, "scope": scope}
-            if clip.has_object:  # object mask + pose, and the source for its mesh (depth occlusion)
-                comp_deps.append(Dep(ingest, k, ("object_mask", "object_pose")))
-                comp_ctx["source"] = clip.source_json
-            upstream = [(ingest, k), (registration, k), (segment, k), (restore, k), (ret, rk), (ren, k), (comp, k), (harm, k)]
-            if not seq:
-                nodes.append(Node(ret, k, s, e, *_hand_retarget(ingest, registration, segment, k, base_ctx, clip)))
-            nodes += [
-                Node(ren, k, s, e, [Dep(ret, rk, ("qpos", "root_pose", "hand_status", "status"))], base_ctx, camera),
-                Node(comp, k, s, e, comp_deps, comp_ctx),
-                Node(harm, k, s, e, [Dep(comp, k, ("image", "robot_mask", "status"))], base_ctx),
-                Node(qc, k, s, e, [Dep(u, j, ("status", *(("hand_status",) if u.stage in PER_HAND_STAGES else ())))
-                                   for u, j in upstream],
-                     {"hands": list(clip.hands),
-                      "upstream": [{"stage": u.stage, "clip": u.clip, "scope": u.scope, "embodiment": u.embodiment}
-                                   for u, _ in upstream]}),
-            ]
+        nodes += embodiment_nodes(clip, emb, scope, frames_per_chunk)
     return nodes
 
 

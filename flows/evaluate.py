@@ -105,7 +105,10 @@ def summarise(rows: list[dict], feats: dict, editor: str, skipped: list[str]) ->
 
 
 def run_evaluate(cfg: EvaluateConfig) -> dict:
-    return evaluate.with_options(task_runner=cfg.cluster.task_runner())(cfg)
+    from prefect_dask import DaskTaskRunner
+
+    with cfg.cluster.connect() as address:
+        return evaluate.with_options(task_runner=DaskTaskRunner(address=address))(cfg)
 
 
 __all__ = ["EvaluateConfig", "evaluate", "run_evaluate", "summarise"]

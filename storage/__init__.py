@@ -5,8 +5,9 @@ paths by hand. The store opens with plain ``zarr``, ``dask.array`` and ``xarray`
 """
 
 from handedit.storage.layout import ARRAYS, SCOPES, STAGES, Unit, chunk_ranges
-from handedit.storage.ledger import read_ledger, status_counts, write_ledger_table
+from handedit.storage.ledger import read_ledger, status_counts
 from handedit.storage.provenance import ChunkRecord, is_current, provenance_key, read_records, write_records
+from handedit.storage.location import Location
 from handedit.storage.store import (
     StoreError,
     create_or_open_store,
@@ -14,12 +15,13 @@ from handedit.storage.store import (
     digest,
     open_store,
     read_chunk,
+    set_attrs,
     write_chunk,
 )
 
 __all__ = [
     "ARRAYS", "SCOPES", "STAGES", "Unit", "chunk_ranges", "read_ledger", "status_counts",
-    "write_ledger_table", "ChunkRecord", "is_current", "provenance_key", "read_records",
+    "ChunkRecord", "is_current", "provenance_key", "read_records",
     "write_records", "StoreError", "create_or_open_store", "create_unit", "digest",
-    "open_store", "read_chunk", "write_chunk",
+    "open_store", "read_chunk", "write_chunk", "Location", "set_attrs",
 ]

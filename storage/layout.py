@@ -2,13 +2,13 @@
 
 Nothing else in the project builds a store path by hand. The tree is::
 
-    <store>.zarr/                         attrs: schema, frames_per_chunk, clips, runs
+    <store>.zarr/                         attrs: schema, frames_per_chunk, created
       clips/<clip>/source/                ingest: frames, camera, keypoints (per hand), arm joints, object, gt_*
       clips/<clip>/registration/        keypoints registered to the pixels, offset_px, scale
       clips/<clip>/segment/               hand_mask, handarm_mask (per hand), confidence
       clips/<clip>/restore_background/<scope>/   background (scope = hand | hand_arm)
       clips/<clip>/embodiments/<emb>/<stage>/    retarget, render, composite, harmonize, qc
-      ledger/                             the rejection ledger as table columns
+    beside it: shards/, index/, ledger/   per-shard bookkeeping (handedit.storage.shards)
 
 Every stage group ("unit") holds a ``status`` array (one int16 per frame, codes in
 ``handedit.reasons``) and, in its attributes, a provenance record per chunk.
@@ -32,7 +32,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: hand axis, registration stage, shard bookkeeping beside the store
 STORE_SUFFIX = ".zarr"
 SCOPES = ("hand", "hand_arm")
 
@@ -96,8 +96,6 @@ def safe_name(kind: str, name: str) -> str:
 def clip_path(clip: str) -> str:
     return f"clips/{safe_name('clip id', clip)}"
 
-
-LEDGER_PATH = "ledger"
 
 # Review previews of a hand-arm sequence's top virtual-base candidates: a sequence-level
 # group per hand inside its retarget unit (not per frame), written by the one retarget task.

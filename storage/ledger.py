@@ -1,10 +1,11 @@
-"""The rejection ledger: every rejected frame with its stage, reason code and detail.
+"""The rejection ledger: every rejected frame (or hand) with its stage, reason code and detail.
 
-The ledger is derived from the chunk provenance records (which the driver writes right
-after each chunk), so it can never disagree with the per-frame status arrays, and a
-re-run that changes an outcome replaces its rows instead of appending stale ones.
-``write_ledger_table`` materialises it as columns under ``ledger/`` for readers that
-only have plain zarr.
+The ledger is derived from the chunk provenance records (which a task writes right after
+each chunk), so it can never disagree with the per-frame status arrays, and a re-run that
+changes an outcome replaces its rows instead of appending stale ones. A clip whose source
+could not be opened has no units; its one row (frame -1) comes from its shard's index.
+Each shard flow writes its clips' ledger as a Parquet partition beside the store
+(``handedit.storage.shards``), which is what ``handedit ledger`` reads at scale.
 """
 
 from __future__ import annotations
@@ -14,15 +15,19 @@ import pandas as pd
 import zarr
 
 from handedit.reasons import Reason
-from handedit.storage.layout import LEDGER_COLUMNS, LEDGER_PATH, STAGE_LEVEL, Unit
+from handedit.storage.layout import LEDGER_COLUMNS, STAGE_LEVEL, Unit
 from handedit.storage.provenance import read_records
 
 
-def iter_units(root: zarr.Group):
-    """Every unit present in the store."""
-    if "clips" not in root:
-        return
-    for clip in sorted(root["clips"].group_keys()):
+def iter_units(root: zarr.Group, clips=None):
+    """Every unit present in the store (of ``clips`` only, when given: no listing)."""
+    if clips is None:
+        if "clips" not in root:
+            return
+        clips = sorted(root["clips"].group_keys())
+    for clip in clips:
+        if f"clips/{clip}" not in root:
+            continue
         cg = root[f"clips/{clip}"]
         for stage, level in STAGE_LEVEL.items():
             if level == "clip":
@@ -47,19 +52,27 @@ def _reason_name(code: int) -> str:
         return f"UNKNOWN_{code}"
 
 
-def read_ledger(root: zarr.Group) -> pd.DataFrame:
-    """All rejections as a table: stage, clip, scope, embodiment, frame, reason, detail.
+def source_error_rows(errors: dict[str, str]) -> list[dict]:
+    """One ledger row (frame -1) per clip whose source could not be opened."""
+    code = int(Reason.SOURCE_UNREADABLE)
+    return [{"stage": "ingest", "clip": clip, "scope": "", "embodiment": "", "side": "", "frame": -1, "reason": code,
+             "reason_name": _reason_name(code), "detail": err} for clip, err in sorted(errors.items())]
 
-    A clip whose source could not be opened at all appears once, with frame -1.
+
+def read_ledger(root: zarr.Group, clips=None, source_errors: dict[str, str] | None = None) -> pd.DataFrame:
+    """All rejections as a table: stage, clip, scope, embodiment, side, frame, reason, detail.
+
+    ``clips``: only these (default: every clip in the store). A clip whose source could not
+    be opened appears once, with frame -1 (``source_errors``; default: from the shards' index).
     """
-    rows = [
-        {"stage": "ingest", "clip": clip, "scope": "", "embodiment": "", "side": "", "frame": -1,
-         "reason": int(entry.get("reason", Reason.SOURCE_UNREADABLE)),
-         "reason_name": _reason_name(int(entry.get("reason", Reason.SOURCE_UNREADABLE))), "detail": entry["error"]}
-        for clip, entry in (root.attrs.get("clips") or {}).items()
-        if entry.get("error")
-    ]
-    for unit in iter_units(root):
+    if source_errors is None:
+        from handedit.storage.summary import source_errors as stored_errors
+
+        source_errors = stored_errors(root)
+        if clips is not None:
+            source_errors = {c: e for c, e in source_errors.items() if c in set(clips)}
+    rows = source_error_rows(source_errors)
+    for unit in iter_units(root, clips):
         for rec in read_records(root, unit).values():
             for rej in rec.rejections:
                 rows.append(
@@ -89,11 +102,11 @@ def unit_sides(root: zarr.Group, unit: Unit) -> list[str]:
     return list(hands)
 
 
-def status_counts(root: zarr.Group, by_side: bool = False) -> pd.DataFrame:
-    """Frames per (stage, status name) over the whole store, from the status arrays; with
-    ``by_side``, per-hand stages are counted per (stage, side, status) from ``hand_status``."""
+def status_counts(root: zarr.Group, by_side: bool = False, clips=None) -> pd.DataFrame:
+    """Frames per (stage, status name) over the store (or ``clips``), from the status arrays;
+    with ``by_side``, per-hand stages are counted per (stage, side, status) from ``hand_status``."""
     rows = []
-    for unit in iter_units(root):
+    for unit in iter_units(root, clips):
         group = root[unit.path]
         if by_side and "hand_status" in group:
             hs = group["hand_status"][:]
@@ -108,20 +121,3 @@ def status_counts(root: zarr.Group, by_side: bool = False) -> pd.DataFrame:
     cols = ["stage", "side", "status", "frames"] if by_side else ["stage", "status", "frames"]
     df = pd.DataFrame(rows, columns=["stage", "side", "status", "frames"])[cols]
     return df.groupby(cols[:-1], sort=False, as_index=False, dropna=False)["frames"].sum()
-
-
-def write_ledger_table(root: zarr.Group, ledger: pd.DataFrame | None = None) -> int:
-    """Driver only: materialise the ledger as one array per column under ``ledger/``."""
-    ledger = read_ledger(root) if ledger is None else ledger
-    if LEDGER_PATH in root:
-        del root[LEDGER_PATH]
-    group = root.require_group(LEDGER_PATH)
-    n = len(ledger)
-    for name, dtype in LEDGER_COLUMNS:
-        values = ledger[name].to_numpy()
-        values = values.astype(str) if dtype == "str" else values.astype(dtype)
-        arr = group.create_array(name, shape=(n,), dtype=dtype, chunks=(max(n, 1),), dimension_names=("row",))
-        if n:
-            arr[:] = values
-    group.attrs.update({"columns": [c for c, _ in LEDGER_COLUMNS], "rows": n})
-    return n

@@ -57,44 +57,45 @@ def now_iso() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="seconds")
 
 
-def open_store(path: str | Path, mode: str = "r") -> zarr.Group:
-    """Open an existing store (``mode='r'`` or ``'r+'``) after checking its schema."""
-    path = Path(path)
-    if not (path / "zarr.json").exists():
-        raise StoreError(f"{path} is not a handedit store (no zarr.json); run `handedit curate --out DIR` to make one")
-    root = zarr.open_group(str(path), mode=mode)
+def _location(where) -> "Location":
+    from handedit.storage.location import Location
+
+    return where if isinstance(where, Location) else Location(where)
+
+
+def open_store(where, mode: str = "r") -> zarr.Group:
+    """Open an existing store (``mode='r'`` or ``'r+'``) after checking its schema.
+
+    ``where``: a run folder, a ``.zarr`` path or URL, or a ``Location``."""
+    loc = _location(where)
+    if not loc.store_exists():
+        raise StoreError(f"{loc.store_url} is not a handedit store (no zarr.json); run `handedit curate --out DIR` to make one")
+    root = zarr.open_group(loc.zarr_store(read_only=mode == "r"), mode=mode)
     version = root.attrs.get("schema_version")
     if version != SCHEMA_VERSION:
-        raise StoreError(f"{path} has schema {version}, this code reads schema {SCHEMA_VERSION}; re-curate into a new store")
+        raise StoreError(f"{loc.store_url} has schema {version}, this code reads schema {SCHEMA_VERSION}; "
+                         f"re-curate into a new store")
     return root
 
 
-def create_or_open_store(path: str | Path, frames_per_chunk: int, code_version: str) -> zarr.Group:
-    """Driver: open the store, creating it on first use. Chunking is fixed at creation."""
-    path = Path(path)
-    if (path / "zarr.json").exists():
-        root = open_store(path, mode="r+")
+def create_or_open_store(where, frames_per_chunk: int, code_version: str) -> zarr.Group:
+    """Driver: open the store, creating it on first use. Chunking is fixed at creation.
+
+    The root's attributes hold only what is fixed per store (schema, chunking, creation);
+    registries and run logs are per shard (``handedit.storage.shards``)."""
+    loc = _location(where)
+    if loc.store_exists():
+        root = open_store(loc, mode="r+")
         stored = root.attrs.get("frames_per_chunk")
         if stored != frames_per_chunk:
             raise StoreError(
-                f"{path} was created with frames_per_chunk={stored}; pass the same value "
+                f"{loc.store_url} was created with frames_per_chunk={stored}; pass the same value "
                 f"(or a new --out) - chunk boundaries are what keeps one writer per chunk"
             )
         return root
-    path.parent.mkdir(parents=True, exist_ok=True)
-    root = zarr.open_group(str(path), mode="w")
-    root.attrs.update(
-        jsonable(
-            {
-                "schema_version": SCHEMA_VERSION,
-                "frames_per_chunk": frames_per_chunk,
-                "created": now_iso(),
-                "created_by": code_version,
-                "clips": {},
-                "runs": [],
-            }
-        )
-    )
+    root = zarr.open_group(loc.zarr_store(), mode="w")
+    root.attrs.update(jsonable({"schema_version": SCHEMA_VERSION, "frames_per_chunk": frames_per_chunk,
+                                "created": now_iso(), "created_by": code_version}))
     return root
 
 

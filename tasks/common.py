@@ -86,8 +86,11 @@ class StageOutput:
 
 @lru_cache(maxsize=8)
 def open_root(store: str) -> zarr.Group:
-    """One store handle per worker process (reads are safe to share)."""
-    return zarr.open_group(store, mode="r+")
+    """One store handle per worker process (reads are safe to share); ``store`` is the
+    store's path or URL (``Location.store_url``)."""
+    from handedit.storage.location import Location
+
+    return zarr.open_group(Location(store).zarr_store(), mode="r+")
 
 
 def attempt_number() -> int:
@@ -99,11 +102,20 @@ def attempt_number() -> int:
         return 1
 
 
+def seed_from(key: str) -> None:
+    """Same inputs, same bytes: OpenCV's global RNG (GrabCut's initialisation) seeded from
+    the chunk's provenance key, so a chunk computes the same output in any process."""
+    import cv2
+
+    cv2.setRNGSeed(int(key[:8], 16) % (2**31 - 1) if key and all(c in "0123456789abcdef" for c in key[:8]) else 0)
+
+
 def execute(job: ChunkJob, body: Callable[[zarr.Group, ChunkJob], StageOutput]) -> dict:
     """Run a stage body on one chunk, write its outputs, return its provenance record."""
     started, t0 = now_iso(), time.perf_counter()
     if job.fault:
         raise InjectedFault(f"fault injected into {job.unit.label} chunk {job.chunk}")
+    seed_from(job.key)
     root = open_root(job.store)
     out = body(root, job)
     status = np.asarray(out.status, dtype=np.int16)

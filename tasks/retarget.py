@@ -71,9 +71,9 @@ def _hand_arm_body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     inp = _inputs(root, job, ("world_from_camera",))
     mesh, pose = _object(root, job)
     sides = tuple(job.context["hands"])
-    # operators' choices from `handedit review` (read fresh: the cached root may predate them)
-    reviews = open_store(job.store).attrs.get("reviews") or {}
-    choices = {s: reviews[k]["choice"] for s in sides if (k := f"{job.unit.clip}/{job.unit.embodiment}/{s}") in reviews}
+    # operators' choices from `handedit review`, per hand (read fresh: the cached root may predate them)
+    reviews = open_store(job.store).get(job.unit.path).attrs.get("reviews") or {}
+    choices = {s: reviews[s]["choice"] for s in sides if s in reviews}
     world = job.context.get("world")
     wfc = inp["world_from_camera"] if world else None
     res = retarget_hand_arm_sides(inp["reg_keypoints"], inp["reg_keypoints_valid"], inp["ready"], sides, job.unit.embodiment,

@@ -1,23 +1,13 @@
-"""The chunk DAG and the driver's scheduler, without Prefect or Dask."""
+"""The chunk DAG of one clip and the walk a task makes over it, without Prefect or a store."""
 
 from __future__ import annotations
 
-from handedit.flows.dag import ClipPlan, build_nodes
-from handedit.flows.scheduler import run_dag
+from handedit.flows.dag import ClipPlan, build_nodes, clip_nodes, embodiment_nodes
 from handedit.storage import Unit
+from handedit.tasks.clip import CLIP_STAGES, EMBODIMENT_STAGES, WalkResult, _order, walk
 
 CLIP = ClipPlan("c", n_frames=20, height=4, width=4, intrinsics={"fx": 1}, source_json="{}", fingerprint="fp",
                 has_object=True, has_gt=False)
-
-
-class Done:
-    """A handle that is already finished (the scheduler only needs add_done_callback)."""
-
-    def __init__(self, value):
-        self.value = value
-
-    def add_done_callback(self, fn):
-        fn(self)
 
 
 def test_nodes_and_dependencies():
@@ -41,41 +31,51 @@ def test_nodes_and_dependencies():
     assert len(qc.deps) == 8 and all(d.arrays[0] == "status" for d in qc.deps)
     assert {d.unit.stage for d in qc.deps if "hand_status" in d.arrays} == {"registration", "segment", "retarget", "render",
                                                                              "composite"}
+    # what the two tasks of a clip walk: clip stages, and one embodiment's
+    assert {n.unit.stage for n in clip_nodes(CLIP, ["hand"], 8, 3)} == set(CLIP_STAGES)
+    assert {n.unit.stage for n in embodiment_nodes(CLIP, "allegro", "hand", 8)} == set(EMBODIMENT_STAGES)
 
 
-def run(nodes, stored, params=None, fail=(), prefail_stage=None):
-    params = params or {}
-    order, written = [], {}
-
-    def submit(prep):
-        order.append(prep.node.id)
-        failed = prep.node.unit.stage in fail
-        return Done(({"key": prep.key, "outcome": "error" if failed else "ok",
-                      "outputs": {"status": f"s-{prep.node.unit.stage}-{prep.node.chunk}-{'x' if failed else 'ok'}"}}, failed))
-
-    def prefail(prep):
-        if prep.node.unit.stage == prefail_stage:
-            return {"key": prep.key, "outcome": "error", "outputs": {"status": "missing"}}
-        return None
-
-    result = run_dag(nodes, lambda s: (1, params.get(s, {})), lambda nid: stored.get(nid), submit,
-                     lambda prep, h: h.value, prefail, lambda n, r: written.__setitem__(n.id, r))
-    return result, order, written
-
-
-def test_scheduler_runs_in_dependency_order_then_skips_current_chunks():
-    nodes = build_nodes(CLIP, {"allegro": "hand"}, 8, 3)
-    result, order, written = run(nodes, {})
-    assert len(order) == len(nodes) and set(written) == {n.id for n in nodes}
+def test_walk_streams_chunks_in_dependency_order():
+    nodes = clip_nodes(CLIP, ["hand"], 8, 3)
+    order = [(n.unit.stage, n.chunk) for n in _order(nodes)]
     pos = {nid: i for i, nid in enumerate(order)}
     for n in nodes:
         for d in n.deps:
-            assert pos[(d.unit, d.chunk)] < pos[n.id]
+            assert pos[(d.unit.stage, d.chunk)] < pos[(n.unit.stage, n.chunk)]
+    # streaming: chunk 0 is restored before chunk 2 is even ingested (it needs chunks 0-1 only)
+    assert pos[("restore_background", 0)] < pos[("ingest", 2)]
+
+
+def run(nodes, records, params=None, fail=(), prefail_stage=None):
+    params = params or {}
+    ran, written = [], {}
+
+    def run_node(node, key, inputs, version, p, fault):
+        ran.append(node.id)
+        failed = node.unit.stage in fail
+        return {"key": key, "outcome": "error" if failed else "ok", "error": "boom" if failed else None,
+                "outputs": {"status": f"s-{node.unit.stage}-{node.chunk}-{'x' if failed else 'ok'}"}}
+
+    def prefail(node, key, inputs, version, p):
+        if node.unit.stage == prefail_stage:
+            return {"key": key, "outcome": "error", "outputs": {"status": "missing"}}
+        return None
+
+    result = walk(nodes, lambda s: (1, params.get(s, {})), records, run_node, lambda n, r: written.__setitem__(n.id, r),
+                  WalkResult("c"), prefail=prefail)
+    return result, ran, written
+
+
+def test_walk_skips_current_chunks_and_reruns_what_changed():
+    nodes = build_nodes(CLIP, {"allegro": "hand"}, 8, 3)
+    result, ran, written = run(nodes, {})
+    assert len(ran) == len(nodes) and set(written) == {n.id for n in nodes}
     # same inputs and params: nothing runs
-    _, again, _ = run(nodes, written)
+    _, again, _ = run(nodes, dict(written))
     assert again == []
     # new harmonize params: only harmonize runs (qc reads status digests, unchanged here)
-    _, changed, _ = run(nodes, written, params={"harmonize": {"strength": 0.9}})
+    _, changed, _ = run(nodes, dict(written), params={"harmonize": {"strength": 0.9}})
     assert {nid[0].stage for nid in changed} == {"harmonize"} and len(changed) == 3
     # an error record is never current: it runs again
     stored = dict(written)
@@ -85,36 +85,11 @@ def test_scheduler_runs_in_dependency_order_then_skips_current_chunks():
     assert retried[0] == key
 
 
-def test_failures_are_counted_and_do_not_stop_the_dag():
+def test_failures_are_counted_and_do_not_stop_the_walk():
     nodes = build_nodes(CLIP, {"allegro": "hand"}, 8, 3)
-    result, order, written = run(nodes, {}, fail=("segment",), prefail_stage="retarget")
-    assert result.counts["segment"].failed == 3 and result.counts["retarget"].failed == 3
-    assert result.counts["qc"].ran == 3  # downstream still ran (and sees non-OK status)
-    assert not any(nid[0].stage == "retarget" for nid in order)  # prefailed: never submitted
+    result, ran, written = run(nodes, {}, fail=("segment",), prefail_stage="retarget")
+    assert result.stages["segment"]["failed"] == 3 and result.stages["retarget"]["failed"] == 3
+    assert result.stages["qc"]["ran"] == 3  # downstream still ran (and sees non-OK status)
+    assert not any(nid[0].stage == "retarget" for nid in ran)  # prefailed: never run
     assert len(written) == len(nodes)
-
-
-class Never:
-    """A handle whose task never finishes (a cluster that lost its workers)."""
-
-    def add_done_callback(self, fn):
-        pass
-
-
-def test_idle_driver_asks_the_watchdog_and_can_abort():
-    nodes = build_nodes(CLIP, {"allegro": "hand"}, 8, 3)
-    calls = []
-
-    def on_idle(idle_s):
-        calls.append(idle_s)
-        if len(calls) == 3:
-            raise RuntimeError("no worker")
-
-    try:
-        run_dag(nodes, lambda s: (1, {}), lambda nid: None, lambda prep: Never(), lambda p, h: ({}, False),
-                lambda prep: None, lambda n, r: None, on_idle=on_idle, poll_s=0.01)
-    except RuntimeError as exc:
-        assert "no worker" in str(exc)
-    else:
-        raise AssertionError("the driver kept waiting")
-    assert calls == sorted(calls) and len(calls) == 3
+    assert len(result.errors) == 3  # the segment failures, to retry; prefailed chunks are the plan's own

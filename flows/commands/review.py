@@ -10,10 +10,11 @@ Each hand of a bimanual clip has its own arm and base: ``--side left|right`` pic
 (default: the clip's only hand).
 
 The default policy (``auto_top1``) already picked the best-ranked candidate and says so
-in provenance (``selected_by``). A decision is stored in the store's ``reviews`` attribute
-and the sequence's retarget records are cleared, so the next ``handedit curate`` run
-re-solves that sequence with the chosen base (or rejects it, REVIEW_DROPPED) and re-runs
-only what reads it. Run it while no curate run writes to the store.
+in provenance (``selected_by``). A decision is stored in the sequence's retarget unit
+(its ``reviews`` attribute, per hand) and that unit's records are cleared, so the next
+``handedit curate`` run re-solves that sequence with the chosen base (or rejects it,
+REVIEW_DROPPED) and re-runs only what reads it. Run it while no curate run writes to the
+store.
 """
 
 from __future__ import annotations
@@ -28,12 +29,12 @@ REVIEWS_ATTR = "reviews"
 def _summaries(root, clip: str | None = None, emb: str | None = None,
                side: str | None = None) -> dict[tuple[str, str, str], dict]:
     from handedit.storage import Unit, read_records
+    from handedit.storage.summary import curated_clips
 
     out = {}
-    for c in sorted((root.attrs.get("clips") or {})):
-        if clip and c != clip:
-            continue
-        for e in sorted((root.attrs.get("embodiments") or {})):
+    for c in ([clip] if clip else curated_clips(root)):
+        group = f"clips/{c}/embodiments"
+        for e in (sorted(root[group].group_keys()) if group in root else []):
             if emb and e != emb:
                 continue
             recs = read_records(root, Unit("retarget", c, embodiment=e))
@@ -57,21 +58,26 @@ def cmd_review(args: argparse.Namespace) -> int:
     from handedit.storage.provenance import PROVENANCE_ATTR
     from handedit.storage.store import now_iso, set_attrs
 
+    from handedit.storage import Location
+
     path = store_path(args.dir)
-    if not path.exists():
+    if not Location(args.dir).store_exists():
         print(f"error: no store at {path}; run `handedit curate --out {args.dir}` first", file=sys.stderr)
         return 2
     deciding = args.choose is not None or args.drop
     if (deciding or args.previews) and not (args.clip and args.embodiment):
         print("error: --choose/--drop/--previews need --clip and --embodiment", file=sys.stderr)
         return 2
-    root = open_store(path, mode="r+" if deciding else "r")
+    root = open_store(args.dir, mode="r+" if deciding else "r")
     found = _summaries(root, args.clip, args.embodiment, args.side)
     if (deciding or args.previews) and len(found) > 1:
         sides = sorted({k[2] for k in found})
         print(f"error: {args.clip}/{args.embodiment} has one arm per hand ({', '.join(sides)}); pass --side", file=sys.stderr)
         return 2
-    reviews = dict(root.attrs.get(REVIEWS_ATTR) or {})
+    def reviews_of(c: str, e: str) -> dict:
+        unit = Unit("retarget", c, embodiment=e)
+        return dict(root[unit.path].attrs.get(REVIEWS_ATTR) or {}) if unit.path in root else {}
+
     if not found:
         print(f"error: no hand-arm sequence with virtual-base candidates in {path}"
               + (f" for {args.clip}/{args.embodiment}" if args.clip else ""), file=sys.stderr)
@@ -79,9 +85,9 @@ def cmd_review(args: argparse.Namespace) -> int:
     if not deciding:
         for (c, e, sd), vb in found.items():
             top = vb["ranking"][:3]
-            key = f"{c}/{e}/{sd}"
+            review = reviews_of(c, e).get(sd)
             print(f"{c} / {e} / {sd}: chosen {vb['chosen']} ({vb['selected_by']}), top-3 {top}, L_r {vb['reach_m']:.3f} m"
-                  + (f"  review: {reviews[key]}" if key in reviews else "")
+                  + (f"  review: {review}" if review else "")
                   + (f"  REJECTED: {vb['detail']}" if vb["chosen"] is None else ""))
             cands = vb["candidates"] if args.clip else [vb["candidates"][i] for i in top]
             for cand in cands:
@@ -100,9 +106,13 @@ def cmd_review(args: argparse.Namespace) -> int:
                   f"of {c}/{e}/{sd}", file=sys.stderr)
             return 2
         choice = args.choose
-    reviews[f"{c}/{e}/{sd}"] = {"choice": choice, "by": "operator", "at": now_iso()}
-    set_attrs(root, "", {REVIEWS_ATTR: reviews})
-    set_attrs(root, Unit("retarget", c, embodiment=e).path, {PROVENANCE_ATTR: {}})  # re-solve on the next run
+    reviews = reviews_of(c, e)
+    reviews[sd] = {"choice": choice, "by": "operator", "at": now_iso()}
+    # the decision, and no current record: the next curate run re-solves this sequence
+    set_attrs(root, Unit("retarget", c, embodiment=e).path, {REVIEWS_ATTR: reviews, PROVENANCE_ATTR: {}})
+    from handedit.storage.shards import invalidate
+
+    invalidate(Location(args.dir), [c])
     print(f"{c}/{e}/{sd}: {'dropped' if choice == -1 else f'candidate {choice}'}; re-run `handedit curate` to apply")
     return 0
 

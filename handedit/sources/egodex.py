@@ -102,6 +102,9 @@ class EgoDexSpec(pydantic.BaseModel):
     def mp4(self) -> Path:
         return Path(self.root) / self.task / f"{self.episode}.mp4"
 
+    def files(self) -> list[Path]:
+        return [self.hdf5, self.mp4]
+
     def open(self) -> "EgoDexSource":
         return EgoDexSource(self)
 

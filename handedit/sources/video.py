@@ -48,6 +48,9 @@ class VideoSpec(pydantic.BaseModel):
     def id(self) -> str:
         return self.clip_id or self.path.stem
 
+    def files(self) -> list[Path]:
+        return [self.path, *([self.keypoints_path] if self.keypoints_path else [])]
+
     def open(self) -> "VideoSource":
         return VideoSource(self)
 
