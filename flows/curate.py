@@ -322,6 +322,7 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
                     summary["shards"]["skipped"] += 1
                     bar.update()
                     continue
+                collect(block=False)  # wait for a free slot first: claim only what runs now
                 claim, other = try_claim(loc, shard.id, holder, config.claim_lease_s, take_over=config.take_over)
                 if claim is None:
                     summary["shards"]["held"] += 1
@@ -330,7 +331,6 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
                                    "that driver is gone)", shard.id, other.describe())
                     continue
                 leases.add(claim)
-                collect(block=False)
                 args = (config_json, shard.id, [s.model_dump_json() for s in shard.specs], emb_dicts, holder, digest, version)
                 in_flight[shard.id] = pool.submit(contextvars.copy_context().run, shard_flow, *args)
             collect(block=True)
