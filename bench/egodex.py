@@ -29,6 +29,9 @@ os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "error")
 os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "180")
 
 REPO = Path(__file__).resolve().parents[1]
+import sys  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/figure.py
 
 
 def stage_costs(root) -> dict[str, float]:
@@ -68,32 +71,6 @@ def coverage(root, clip: str, emb: str) -> tuple[float, float]:
             under += (m & robot[k]).sum()
             left += (m & (np.abs(img.astype(int) - f).max(-1) <= 2)).sum()
     return under / max(total, 1), left / max(total, 1)
-
-
-def figure(root, clips: list[str], emb: str, out: Path, per_clip: int = 2) -> None:
-    import cv2
-    import numpy as np
-
-    from handedit.reasons import Reason
-    from handedit.storage import Unit
-
-    rows = []
-    for clip in clips:
-        kept = np.flatnonzero(root[Unit("qc", clip, embodiment=emb).path]["status"][:] == Reason.OK)
-        for t in kept[np.linspace(0, len(kept) - 1, min(per_clip, len(kept))).astype(int)] if len(kept) else []:
-            f = root[Unit("ingest", clip).path]["frames"][t]
-            masks = f.astype(np.float32)
-            seg = root[Unit("segment", clip).path]["handarm_mask"][t]
-            for k, col in enumerate([(40, 80, 255), (255, 60, 40)][: len(seg)]):
-                masks[seg[k]] = 0.5 * masks[seg[k]] + 0.5 * np.array(col)
-            bg = root[Unit("restore_background", clip, scope="hand").path]["background"][t]
-            gt = root[Unit("harmonize", clip, embodiment=emb).path]["image"][t]
-            rows.append(np.hstack([f, masks.astype(np.uint8), bg, gt]))
-    if rows:
-        grid = np.vstack(rows)
-        grid = cv2.resize(grid, None, fx=min(1.0, 2400 / grid.shape[1]), fy=min(1.0, 2400 / grid.shape[1]))
-        cv2.imwrite(str(out), cv2.cvtColor(grid, cv2.COLOR_RGB2BGR))
-        print(f"figure: {out} (source | masks: left blue, right red | restored background | pseudo-GT, {emb})")
 
 
 def main() -> None:
@@ -159,7 +136,10 @@ def main() -> None:
             under, left = coverage(root, c, e)
             print(f"  {c:<34} {e:<14} {under:6.2f} {left:6.3f}")
     if args.figure:
-        figure(root, clips, embs[0], Path(args.figure))
+        from figure import contact_sheet
+
+        if contact_sheet(root, clips, embs[0], Path(args.figure)):
+            print(f"\nfigure: {args.figure} (source | masks: left blue, right red | restored background | pseudo-GT, {embs[0]})")
 
 
 if __name__ == "__main__":

@@ -147,7 +147,7 @@ def real_run(n_shards: int, per_shard: int, workers: int, frames: int, size: tup
 
     def config(name: str, cluster=ClusterConfig()) -> CurateConfig:
         return CurateConfig(out=str(tmp / name), clips=specs, embodiments=[emb], shard_size=per_shard,
-                            shards_in_flight=max(2, workers), cluster=cluster)
+                            shards_in_flight=workers + 1, cluster=cluster)
 
     # bare loop: the same task bodies, clips dealt round-robin to as many processes as workers
     cfg = config("bare")
@@ -166,15 +166,31 @@ def real_run(n_shards: int, per_shard: int, workers: int, frames: int, size: tup
     with prefect_test_harness(server_startup_timeout=180):
         server_s = time.perf_counter() - t0
         t1 = time.perf_counter()
-        with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                          dashboard_address="127.0.0.1:0") as cluster:
+        import dask
+
+        from handedit.flows.config import LOCAL_WORKER_CONFIG
+
+        with dask.config.set(LOCAL_WORKER_CONFIG), \
+                LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                             dashboard_address="127.0.0.1:0") as cluster:
             cluster_s = time.perf_counter() - t1
             t2 = time.perf_counter()
             summary = run_curate(config("flow", ClusterConfig(address=cluster.scheduler_address)))
             flow_s = time.perf_counter() - t2
+    work = {name: _chunk_seconds(tmp / name) for name in ("bare", "flow")}
     shutil.rmtree(tmp, ignore_errors=True)
     return {"frames": n_frames, "bare_s": bare_s, "flow_s": flow_s, "server_s": server_s, "cluster_s": cluster_s,
-            "shards": summary["shards"], "workers": workers}
+            "shards": summary["shards"], "workers": workers, "work": work}
+
+
+def _chunk_seconds(out: Path) -> float:
+    """Sum of the chunk bodies' own wall time in a store (provenance ``seconds``)."""
+    from handedit.storage import open_store
+    from handedit.storage.ledger import iter_units
+    from handedit.storage.provenance import read_records
+
+    root = open_store(str(out))
+    return sum(r.seconds for u in iter_units(root) for r in read_records(root, u).values())
 
 
 def main() -> None:
@@ -186,7 +202,8 @@ def main() -> None:
     ap.add_argument("--shard-size", type=int, default=64)
     ap.add_argument("--real-shards", type=int, default=4)
     ap.add_argument("--real-clips", type=int, default=2, help="clips per shard in the real run")
-    ap.add_argument("--real-frames", type=int, default=32)
+    ap.add_argument("--real-frames", type=int, default=48)
+    ap.add_argument("--real-size", default="640x480")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--no-real", action="store_true")
     args = ap.parse_args()
@@ -213,13 +230,16 @@ def main() -> None:
           f"{old['largest_file_bytes'] / 2**20:>15.1f} MB  (round 1: the root registry, grows with every clip)")
     if args.no_real:
         return
-    r = real_run(args.real_shards, args.real_clips, args.workers, args.real_frames, (320, 240), "allegro")
+    size = tuple(int(v) for v in args.real_size.split("x"))
+    r = real_run(args.real_shards, args.real_clips, args.workers, args.real_frames, size, "allegro")
     n = r["frames"]
-    print(f"\nreal: {args.real_shards} shards x {args.real_clips} synthetic clips x {args.real_frames} frames at 320x240, "
+    print(f"\nreal: {args.real_shards} shards x {args.real_clips} synthetic clips x {args.real_frames} frames at {args.real_size}, "
           f"allegro, {r['workers']} processes each side")
     print(f"bare loop ({r['workers']} processes):   {r['bare_s']:7.1f} s  {n / r['bare_s']:6.2f} frames/s")
     print(f"sharded flow ({r['workers']} workers): {r['flow_s']:7.1f} s  {n / r['flow_s']:6.2f} frames/s  shards {r['shards']}")
     print(f"  not counted: Prefect server start {r['server_s']:.1f} s, Dask cluster start {r['cluster_s']:.1f} s")
+    print(f"  chunk bodies' own time: bare {r['work']['bare']:.1f} s, flow {r['work']['flow']:.1f} s "
+          f"(the rest of the flow's wall time is orchestration and idle workers)")
     print(f"parallel efficiency flow/bare: {r['bare_s'] / r['flow_s']:.2f}  (goal >= 0.9)")
 
 

@@ -32,6 +32,16 @@ class IngestConfig(BaseModel):
     model_config = ConfigDict(frozen=True)
 
 
+# Dask's nanny starts workers with OMP/MKL/OPENBLAS_NUM_THREADS=1 and an aggressive
+# MALLOC_TRIM_THRESHOLD_ (``distributed.nanny.pre-spawn-environ``). Our chunk bodies are
+# OpenCV/numpy/llvmpipe work with serial Python between parallel regions: with one thread
+# per library per worker, cores sit idle while the other worker is in Python. Measured on
+# this 2-core machine (bench/scale.py): chunk bodies 1.6x slower in such workers than in a
+# plain process; with the libraries' own defaults, the same. The profiler's default 10 ms
+# stack sampling costs a few percent more; every 100 ms still fills the dashboard's page.
+LOCAL_WORKER_CONFIG = {"distributed.nanny.pre-spawn-environ": {}, "distributed.worker.profile.interval": "100ms"}
+
+
 class ClusterConfig(BaseModel):
     """Where tasks run: a local cluster of worker processes, an existing scheduler, or a
     cluster class (e.g. ``dask_jobqueue.SLURMCluster``, ``dask_kubernetes.operator.KubeCluster``)
@@ -72,10 +82,13 @@ class ClusterConfig(BaseModel):
             if self.adapt:
                 cluster.adapt(**self.adapt)
         else:
+            import dask
             from distributed import LocalCluster
 
-            cluster = LocalCluster(n_workers=self.n_workers, threads_per_worker=self.threads_per_worker, processes=True,
-                                   host="127.0.0.1", dashboard_address=self.dashboard_address, memory_limit=self.memory_limit)
+            with dask.config.set(LOCAL_WORKER_CONFIG):
+                cluster = LocalCluster(n_workers=self.n_workers, threads_per_worker=self.threads_per_worker,
+                                       processes=True, host="127.0.0.1", dashboard_address=self.dashboard_address,
+                                       memory_limit=self.memory_limit)
         with cluster:
             yield cluster.scheduler_address
 

@@ -61,9 +61,13 @@ def prefect_api():
 
 @pytest.fixture(scope="session")
 def dask_cluster():
-    """Two worker processes with one thread each, bound to 127.0.0.1."""
+    """Two worker processes with one thread each, bound to 127.0.0.1 (configured as the
+    flow's own local clusters are: ``handedit.flows.config.LOCAL_WORKER_CONFIG``)."""
+    import dask
     from distributed import LocalCluster
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+    from handedit.flows.config import LOCAL_WORKER_CONFIG
+
+    with dask.config.set(LOCAL_WORKER_CONFIG), LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
                       dashboard_address="127.0.0.1:0", memory_limit="4GiB") as cluster:
         yield cluster
