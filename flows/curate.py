@@ -330,6 +330,13 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
                     logger.warning("shard %s is held by %s; skipped (run again later, or pass --take-over once "
                                    "that driver is gone)", shard.id, other.describe())
                     continue
+                if is_complete(read_manifest(loc, shard.id), digest):
+                    # another driver finished it while this one waited for a slot: the check under
+                    # the claim is the one that counts
+                    release(loc, claim)
+                    summary["shards"]["skipped"] += 1
+                    bar.update()
+                    continue
                 leases.add(claim)
                 args = (config_json, shard.id, [s.model_dump_json() for s in shard.specs], emb_dicts, holder, digest, version)
                 in_flight[shard.id] = pool.submit(contextvars.copy_context().run, shard_flow, *args)
