@@ -21,6 +21,7 @@ import zarr
 from handedit.reasons import Reason
 from handedit.storage import Unit, read_ledger, status_counts
 from handedit.storage.ledger import iter_units
+from handedit.storage.store import read_array
 
 MAX_LEDGER_ROWS = 300
 
@@ -43,7 +44,7 @@ def kept_table(root: zarr.Group) -> list[dict]:
     for unit in iter_units(root):
         if unit.stage != "qc":
             continue
-        status = root[unit.path]["status"][:]
+        status = read_array(root[unit.path]["status"])
         rows.append({"clip": unit.clip, "embodiment": unit.embodiment, "frames": int(status.size),
                      "kept": int((status == Reason.OK).sum()), "kept %": f"{100 * (status == Reason.OK).mean():.1f}"})
     return rows
@@ -54,7 +55,7 @@ def samples(root: zarr.Group, per_unit: int = 3) -> str:
     for unit in iter_units(root):
         if unit.stage != "harmonize":
             continue
-        status = root[unit.path]["status"][:]
+        status = read_array(root[unit.path]["status"])
         frames = np.flatnonzero(status == Reason.OK)
         if frames.size == 0:
             continue
@@ -63,10 +64,11 @@ def samples(root: zarr.Group, per_unit: int = 3) -> str:
         mask = root[Unit("composite", unit.clip, embodiment=unit.embodiment).path]["robot_mask"]
         cells = []
         for t in picks:
-            overlay = src[t].copy()
-            m = mask[t].any(0)  # every hand's robot
+            frame = read_array(src, t)
+            overlay = frame.copy()
+            m = read_array(mask, t).any(0)  # every hand's robot
             overlay[m] = (0.5 * overlay[m] + 0.5 * np.array([0, 160, 255])).astype(np.uint8)
-            cells.append(f"<div class=trip><b>frame {t}</b><br>{_png(src[t])}{_png(root[unit.path]['image'][t])}{_png(overlay)}</div>")
+            cells.append(f"<div class=trip><b>frame {t}</b><br>{_png(frame)}{_png(read_array(root[unit.path]['image'], t))}{_png(overlay)}</div>")
         out.append(f"<h3>{html.escape(unit.clip)} &times; {html.escape(unit.embodiment or '')}</h3>" + "".join(cells))
     return "".join(out) or "<p>no harmonized frames yet</p>"
 
@@ -102,6 +104,7 @@ created {root.attrs.get('created')} by {root.attrs.get('created_by')}</p>
 
 
 def write_page(root: zarr.Group, out: str | Path, title: str = "") -> Path:
+    from handedit.storage.location import write_text_atomic
+
     out = Path(out)
-    out.write_text(render_page(root, title or out.parent.name))
-    return out
+    return write_text_atomic(out, render_page(root, title or out.parent.name))

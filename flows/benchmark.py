@@ -13,7 +13,7 @@ from __future__ import annotations
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor, as_completed
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -26,9 +26,9 @@ from handedit.embodiments import get_embodiment
 from handedit.reasons import Reason
 from handedit.storage import Unit, open_store
 from handedit.storage.benchmark import (BenchDir, BenchIOError, append_jsonl, decode_image, encode_png, iter_jsonl, read_json,
-                               write_bytes, write_image, write_json, write_jsonl, write_text)
+                               read_image, write_bytes, write_image, write_json, write_jsonl, write_text)
 from handedit.storage.layout import SCOPE_MASK
-from handedit.storage.store import now_iso
+from handedit.storage.store import now_iso, read_array
 
 log = logging.getLogger("handedit.bench")
 
@@ -40,12 +40,12 @@ def _kept(root, clip: str, emb: str) -> np.ndarray | None:
     unit = Unit("qc", clip, embodiment=emb)
     if unit.path not in root:
         return None
-    return root[unit.path]["status"][:] == Reason.OK
+    return read_array(root[unit.path]["status"]) == Reason.OK
 
 
 def _replaced(root, clip: str, emb: str, frame: int) -> np.ndarray:
     """(S,) hands of a kept frame whose robot replaced them (QC ``hand_status`` OK)."""
-    return root[Unit("qc", clip, embodiment=emb).path]["hand_status"][frame] == Reason.OK
+    return read_array(root[Unit("qc", clip, embodiment=emb).path]["hand_status"], frame) == Reason.OK
 
 
 def build_testset(store: str | Path, bench: str | Path, n_sources: int = 1000, embodiments: list[str] | None = None,
@@ -55,11 +55,31 @@ def build_testset(store: str | Path, bench: str | Path, n_sources: int = 1000, e
     Without a reference bank the items have no reference views: editors get no render
     and ID fidelity's S_ref is skipped (logged). Returns the folder's meta.
     """
+    from handedit.storage.location import staged_dir
+
     root = open_store(store)
-    out = BenchDir(Path(bench))
     from handedit.storage.summary import curated_clips
 
     clips = curated_clips(root)
+    refuse_holes(store, clips, "bench build")
+    with staged_dir(bench) as tmp:  # the folder appears only once complete
+        return _build(root, store, clips, BenchDir(tmp), n_sources, embodiments, bank, seed, tracks)
+
+
+def refuse_holes(store, clips, command: str) -> None:
+    """Publishing reads only data the records vouch for: refuse when any of it is gone."""
+    from handedit.storage import Location, StoreError
+    from handedit.storage.integrity import verify
+
+    loc = Location(store)
+    problems = verify(loc, clips=clips)
+    if problems:
+        listing = "\n  ".join(p.describe() for p in problems[:10])
+        raise StoreError(f"{command}: {len(problems)} recorded chunk(s) of {loc.store_url} are missing:\n  {listing}\n"
+                         f"run `handedit verify {loc.url} --repair`, then `handedit curate` again, before publishing")
+
+
+def _build(root, store, clips, out: BenchDir, n_sources, embodiments, bank, seed, tracks) -> dict:
     stored_embs = {e: {"scope": get_embodiment(e).track} for c in clips
                    for e in (root[f"clips/{c}/embodiments"].group_keys() if f"clips/{c}/embodiments" in root else [])}
     wanted = embodiments or sorted(stored_embs)
@@ -75,16 +95,16 @@ def build_testset(store: str | Path, bench: str | Path, n_sources: int = 1000, e
         kept = {c: {e: k for e in embs if (k := _kept(root, c, e)) is not None} for c in clips}
         for sf in select_frames(kept, n_sources, seed):
             src_grp = root[Unit("ingest", sf.clip).path]
-            src = src_grp["frames"][sf.frame]
-            humans = root[Unit("segment", sf.clip).path][SCOPE_MASK[scope]][sf.frame]  # (S,H,W) per hand
-            obj = src_grp["object_mask"][sf.frame] if "object_mask" in src_grp else None
+            src = read_array(src_grp["frames"], sf.frame)
+            humans = read_array(root[Unit("segment", sf.clip).path][SCOPE_MASK[scope]], sf.frame)  # (S,H,W) per hand
+            obj = read_array(src_grp["object_mask"], sf.frame) if "object_mask" in src_grp else None
             for emb in embs:
                 if not kept[sf.clip].get(emb, np.zeros(0, bool))[sf.frame:sf.frame + 1].any():
                     continue
                 e = get_embodiment(emb)
                 iid = item_id(scope, sf.clip, sf.frame, emb)
-                gt = root[Unit("harmonize", sf.clip, embodiment=emb).path]["image"][sf.frame]
-                robots = root[Unit("composite", sf.clip, embodiment=emb).path]["robot_mask"][sf.frame]
+                gt = read_array(root[Unit("harmonize", sf.clip, embodiment=emb).path]["image"], sf.frame)
+                robots = read_array(root[Unit("composite", sf.clip, embodiment=emb).path]["robot_mask"], sf.frame)
                 replaced = _replaced(root, sf.clip, emb, sf.frame)
                 human, robot = humans[replaced].any(0), robots[replaced].any(0)
                 write_image(out.item_file(iid, "src"), src)
@@ -191,6 +211,7 @@ class RunSummary:
     cost_usd: float | None
     seconds: float
     failures: list[dict]
+    wrong_size: list[dict] = field(default_factory=list)  # ok, but not the source's size: {id, size, source}
 
 
 def run_editor(bench: str | Path, name: str, editor, concurrency: int = 4, max_tries: int = 3,
@@ -212,7 +233,7 @@ def run_editor(bench: str | Path, name: str, editor, concurrency: int = 4, max_t
     unit_price = price if price is not None else price_per_image(getattr(editor, "model", name))
     todo = [it for it in items if not out.prediction(name, it.id).is_file()]
     t0 = time.monotonic()
-    failures, ok = [], 0
+    failures, wrong, ok = [], [], 0
 
     def one(it: ManifestItem) -> dict:
         req = EditRequest(it.id, Path(it.src_path), Path(it.urdf_ref_paths[0]) if it.urdf_ref_paths else None,
@@ -223,8 +244,12 @@ def run_editor(bench: str | Path, name: str, editor, concurrency: int = 4, max_t
                 data = editor.edit(req)
                 image = decode_image(data, f"{name} output for {it.id}")
                 write_bytes(req.out_path, encode_png(image))
-                return {"status": "ok", "attempts": attempt, "height": image.shape[0], "width": image.shape[1],
-                        "seconds": time.monotonic() - started}
+                rec = {"status": "ok", "attempts": attempt, "height": image.shape[0], "width": image.shape[1],
+                       "seconds": time.monotonic() - started}
+                src_hw = read_image(req.src_path).shape[:2]
+                if tuple(image.shape[:2]) != tuple(src_hw):  # scored only after a resize: say so
+                    rec.update(flags=["wrong_size"], src_height=int(src_hw[0]), src_width=int(src_hw[1]))
+                return rec
             except (EditorError, BenchIOError, OSError) as exc:
                 last = f"{type(exc).__name__}: {exc}"
                 if not getattr(exc, "transient", isinstance(exc, OSError)) or attempt == max_tries:
@@ -241,11 +266,16 @@ def run_editor(bench: str | Path, name: str, editor, concurrency: int = 4, max_t
             append_jsonl(out.records(name), rec)  # only this driver thread appends
             if rec["status"] == "ok":
                 ok += 1
+                if "wrong_size" in rec.get("flags", []):
+                    wrong.append({"id": it.id, "size": f"{rec['width']}x{rec['height']}",
+                                  "source": f"{rec['src_width']}x{rec['src_height']}"})
+                    log.warning("%s returned %s for %s, whose source is %s", name, wrong[-1]["size"], it.id,
+                                wrong[-1]["source"])
             else:
                 failures.append({"id": it.id, "error": rec["error"]})
                 log.warning("%s failed on %s: %s", name, it.id, rec["error"])
     return RunSummary(name, getattr(editor, "model", name), len(todo), ok, len(failures), len(items) - len(todo),
-                      editor_cost(bench, name), time.monotonic() - t0, failures)
+                      editor_cost(bench, name), time.monotonic() - t0, failures, wrong)
 
 
 def editor_cost(bench: str | Path, name: str) -> float | None:

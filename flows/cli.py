@@ -126,14 +126,18 @@ def cmd_curate(args: argparse.Namespace) -> int:
           f"(shards of {config.shard_size} clips)")
     where = config.cluster.address or f"a local Dask cluster ({config.cluster.n_workers} worker processes)"
     print(f"running on {where}; the Dask dashboard link follows when the cluster is up")
+    from handedit.flows.config import PreflightError
     from handedit.storage import StoreError
 
     try:
         summary = run_curate(config, progress=not args.no_progress)
-    except StoreError as exc:
+    except (StoreError, PreflightError) as exc:  # refusals before the run, a store that cannot be used
         print(f"handedit curate: {exc}", file=sys.stderr)
         return 2
     print_summary(summary)
+    if summary.get("clips", {}).get("curated", 1) == 0:
+        print("handedit curate: nothing was curated: no clip could be read (see the reasons above)", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -157,6 +161,10 @@ def print_summary(summary: dict) -> None:
         print(f"  {key:<40} {n:>6}")
     for clip, err in summary.get("clip_errors", {}).items():
         print(f"  clip {clip} not ingested: {err}")
+    if summary.get("recovered"):
+        print(f"\nrecomputed {len(summary['recovered'])} chunk(s) whose stored data was missing or corrupt (first 10):")
+        for note in summary["recovered"][:10]:
+            print(f"  {note}")
     if summary["errors"]:
         print("\nstage errors (first 10):")
         for e in summary["errors"][:10]:
@@ -166,12 +174,9 @@ def print_summary(summary: dict) -> None:
 
 
 def _open(args: argparse.Namespace):
-    from handedit.storage import StoreError, open_store
+    from handedit.storage import open_store
 
-    try:
-        return open_store(args.store)
-    except StoreError as exc:
-        raise SystemExit(f"handedit: {exc}") from None
+    return open_store(args.store)  # a StoreError is one message (``main``)
 
 
 def cmd_ledger(args: argparse.Namespace) -> int:
@@ -275,9 +280,28 @@ def parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from handedit.storage import StoreError
+
     args = parser().parse_args(argv)
     prefect_defaults()
-    return int(args.func(args) or 0)
+    import prefect  # noqa: F401 - configures its log handlers, which the filter then covers
+
+    from handedit.secrets import install_log_filter
+
+    install_log_filter()
+    try:
+        return int(args.func(args) or 0)
+    except StoreError as exc:  # a damaged or unusable store, named down to the file: one message
+        print(f"handedit {args.command}: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # disk full, read-only, permissions: which file, and what to do
+        import errno
+
+        what = exc.filename or ""
+        fix = ("free space there and run the same command again (committed chunks are kept)"
+               if exc.errno == errno.ENOSPC else "check the path and its permissions, then run again")
+        print(f"handedit {args.command}: {exc.strerror or exc} {what}: {fix}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

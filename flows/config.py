@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Annotated
 
 import yaml
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator
 
 from handedit.embodiments import get_embodiment
 from handedit.qc import QCConfig
@@ -29,7 +29,44 @@ from handedit.vision.segment import SegmentConfig
 
 class IngestConfig(BaseModel):
     VERSION: int = 1
-    model_config = ConfigDict(frozen=True)
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class PreflightError(ValueError):
+    """Something a run would fail on, found before any server or cluster starts."""
+
+
+def _models_in(annotation) -> list[type[BaseModel]]:
+    """The pydantic models an annotation can hold (through list[...], unions, Optional)."""
+    import typing
+
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return [annotation]
+    return [m for arg in typing.get_args(annotation) for m in _models_in(arg)]
+
+
+def explain(exc, model: type[BaseModel]) -> str:
+    """A validation error as lines; an unknown key names the closest valid ones
+    (``frames_per_chunks`` -> did you mean ``frames_per_chunk``?)."""
+    import difflib
+
+    lines = []
+    for err in exc.errors():
+        where = ".".join(str(p) for p in err["loc"])
+        if err["type"] != "extra_forbidden":
+            lines.append(f"  {where}: {err['msg']}")
+            continue
+        models = [model]
+        for part in err["loc"][:-1]:
+            nxt = [m for c in models if isinstance(part, str) and part in c.model_fields
+                   for m in _models_in(c.model_fields[part].annotation)]
+            tagged = [c for c in models if "kind" in c.model_fields and c.model_fields["kind"].default == part]
+            models = nxt or tagged or models  # a union's tag picks its member; list indices keep the candidates
+        valid = sorted({f for c in models for f in c.model_fields})
+        close = difflib.get_close_matches(str(err["loc"][-1]), valid, n=3, cutoff=0.6)
+        hint = f"; did you mean {' or '.join(repr(c) for c in close)}?" if close else f"; valid keys: {', '.join(valid)}"
+        lines.append(f"  {where}: unknown key{hint}")
+    return "\n".join(lines)
 
 
 # Dask's nanny starts workers with OMP/MKL/OPENBLAS_NUM_THREADS=1 and an aggressive
@@ -46,6 +83,8 @@ class ClusterConfig(BaseModel):
     """Where tasks run: a local cluster of worker processes, an existing scheduler, or a
     cluster class (e.g. ``dask_jobqueue.SLURMCluster``, ``dask_kubernetes.operator.KubeCluster``)
     started for the run; see ``deploy/cluster/*.yaml``."""
+
+    model_config = ConfigDict(extra="forbid")
 
     address: str | None = Field(None, description="tcp://host:8786 of a running Dask scheduler")
     cluster_class: str | None = Field(None, description="qualified name of a Dask cluster class")
@@ -65,6 +104,20 @@ class ClusterConfig(BaseModel):
         if self.no_worker_timeout_s is not None:
             return self.no_worker_timeout_s
         return 1800.0 if (self.address or self.cluster_class) else 120.0
+
+    def check_reachable(self, timeout_s: float = 10.0) -> None:
+        """An unreachable scheduler address is one message now, not a traceback after a
+        long connect timeout."""
+        import socket
+        from urllib.parse import urlparse
+
+        u = urlparse(self.address if "://" in self.address else f"tcp://{self.address}")
+        try:
+            with socket.create_connection((u.hostname, u.port or 8786), timeout=timeout_s):
+                pass
+        except (OSError, ValueError) as exc:
+            raise PreflightError(f"cannot reach the Dask scheduler at {self.address} ({exc}); start it "
+                             f"(`dask scheduler`) or fix --address / cluster.address") from None
 
     @contextmanager
     def connect(self):
@@ -97,6 +150,8 @@ Url = Annotated[str, BeforeValidator(lambda v: str(v))]
 
 
 class CurateConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
     out: Url = Field(description="the run folder or its store: runs/demo, runs/demo/handedit.zarr, s3://bucket/prefix")
     clips: list[SourceSpec] = Field(default_factory=list, description="explicit clips")
     sources: list[TreeSpec] = Field(default_factory=list, description="dataset trees, e.g. {kind: egodex, root: DIR}")
@@ -106,6 +161,8 @@ class CurateConfig(BaseModel):
     shards_in_flight: int = Field(2, ge=1, description="shard flow runs at a time (the driver holds only these)")
     claim_lease_s: float = Field(600.0, gt=0, description="a shard claim lapses this long after its last renewal")
     take_over: bool = Field(False, description="claim shards even when another driver's claim looks live")
+    check_skipped_shards: bool = Field(True, description="before skipping a complete shard, list its clips' chunk "
+                                       "objects (one listing per clip) and re-run it if any is missing")
     registration: RegistrationConfig = RegistrationConfig()
     segment: SegmentConfig = SegmentConfig()
     restore_background: RestoreConfig = RestoreConfig()
@@ -146,4 +203,7 @@ class CurateConfig(BaseModel):
             data = yaml.safe_load(path.read_text())
         except (OSError, yaml.YAMLError) as exc:
             raise ValueError(f"cannot read curate config {path}: {exc}") from None
-        return cls.model_validate(data)
+        try:
+            return cls.model_validate(data)
+        except ValidationError as exc:
+            raise ValueError(f"{path}: invalid curate config:\n{explain(exc, cls)}") from None

@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextvars
 import hashlib
 import json
+import os
 import subprocess
 import threading
 import time
@@ -34,15 +35,16 @@ from tqdm import tqdm
 
 import handedit
 from handedit.embodiments import EmbodimentError, describe_embodiment, get_embodiment, resolve_urdf
-from handedit.flows.config import CurateConfig
+from handedit.flows.config import CurateConfig, PreflightError
 from handedit.flows.plan import ShardPlan, iter_shards, run_key
 from handedit.reasons import Reason
 from handedit.storage import Location, create_or_open_store
-from handedit.storage.layout import SCHEMA_VERSION
+from handedit.storage.integrity import stored_objects
+from handedit.storage.layout import SCHEMA_VERSION, clip_path
 from handedit.storage.ledger import read_ledger, status_counts
 from handedit.storage.shards import (INDEX, LEDGER, DEFAULT_LEASE_S, is_complete, new_holder, read_manifest, release,
                                      renew, try_claim, write_manifest, write_partition, write_run_log)
-from handedit.storage.store import jsonable, now_iso
+from handedit.storage.store import CorruptChunk, jsonable, now_iso
 from handedit.storage.summary import index_rows
 from handedit.tasks.clip import ClipJob, EmbodimentJob, curate_clip, curate_embodiment, stage_version_params
 
@@ -148,14 +150,18 @@ def curate_shard(config_json: str, shard_id: str, specs_json: list[str], embodim
             emb_futures.append(curate_embodiment.submit(EmbodimentJob(loc.store_url, clip_id, emb, config_json, code),
                                                         emb_id=emb["id"], wait_for=[fc]))
     stages: dict = {}
-    errors, source_errors, task_failures = [], {}, []
+    errors, source_errors, task_failures, recovered = [], {}, [], []
     for fut in [*clip_futures, *emb_futures]:
-        res = fut.result(raise_on_failure=False)
+        try:
+            res = fut.result(raise_on_failure=False)
+        except Exception as exc:  # noqa: BLE001 - e.g. never run because its clip task failed
+            res = exc
         if not isinstance(res, dict):
             task_failures.append(f"{fut.task_run_id}: {res!r}")
             continue
         _merge(stages, res["stages"])
         errors += res["errors"]
+        recovered += res.get("recovered", [])
         if res.get("source_error") and res["clip"] not in source_errors and "could not be ingested" not in res["source_error"]:
             source_errors[res["clip"]] = res["source_error"]
     from handedit.storage import open_store
@@ -164,21 +170,45 @@ def curate_shard(config_json: str, shard_id: str, specs_json: list[str], embodim
     clips = [parse_spec(json.loads(s)).id for s in specs_json]
     ok_clips = [c for c in clips if c not in source_errors]
     written = time.time()
-    index = index_rows(root, ok_clips, source_errors, {e["id"]: e for e in embodiments})
-    index["shard"], index["written"] = shard_id, written
-    write_partition(loc, INDEX, shard_id, index)
-    ledger = read_ledger(root, clips=ok_clips, source_errors=source_errors)
-    ledger["shard"], ledger["written"] = shard_id, written
-    write_partition(loc, LEDGER, shard_id, ledger)
+    try:
+        index = index_rows(root, ok_clips, source_errors, {e["id"]: e for e in embodiments})
+        index["shard"], index["written"] = shard_id, written
+        ledger = read_ledger(root, clips=ok_clips, source_errors=source_errors)
+        ledger["shard"], ledger["written"] = shard_id, written
+        write_partition(loc, INDEX, shard_id, index)
+        write_partition(loc, LEDGER, shard_id, ledger)
+    except CorruptChunk as exc:  # bytes of a unit no task of this run rewrote: verify --repair names them
+        errors.append(str(exc))
     # complete: nothing to retry. Chunks an embodiment without assets rejects are the plan's
     # own outcome (they fail identically until its assets, hence the run key, change).
     complete = not task_failures and not errors
     log = {"run": run_id, "shard": shard_id, "started": started, "finished": now_iso(), "stages": stages,
-           "errors": errors[:50], "task_failures": task_failures, "clip_errors": source_errors, "complete": complete}
+           "errors": errors[:50], "task_failures": task_failures, "clip_errors": source_errors, "complete": complete,
+           "recovered": recovered}
     write_run_log(loc, shard_id, run_id, log)
     write_manifest(loc, shard_id, {"shard": shard_id, "clips": clips, "digest": digest, "complete": complete,
-                                   "embodiments": embodiments, "updated": now_iso(), "run": run_id, "stages": stages})
+                                   "embodiments": embodiments, "updated": now_iso(), "run": run_id, "stages": stages,
+                                   "objects": {c: count_chunk_objects(loc, c) for c in ok_clips} if complete else {}})
     return log
+
+
+def count_chunk_objects(loc: Location, clip: str) -> int:
+    """Chunk objects stored under a clip (one listing): what a complete shard vouches for."""
+    return sum(1 for k in stored_objects(loc, clip_path(clip)) if "/c/" in k)
+
+
+def _objects_missing(loc: Location, manifest: dict, check: bool) -> bool:
+    """A complete shard whose clips now hold fewer chunk objects than when it completed (a
+    deleted chunk or array): run it again; its walk finds and recomputes exactly those."""
+    if not check:
+        return False
+    for clip, n in (manifest.get("objects") or {}).items():
+        have = count_chunk_objects(loc, clip)
+        if have < n:
+            get_run_logger().warning("shard %s: clip %s has %d of its %d chunk objects; recomputing what is missing",
+                           manifest.get("shard"), clip, have, n)
+            return True
+    return False
 
 
 # ----------------------------------------------------------------------------- the driver
@@ -281,7 +311,8 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
     holder = new_holder()
     config_json = config.model_dump_json()
     summary = {"store": loc.store_url, "stages": {}, "errors": [], "clip_errors": {}, "run": holder,
-               "shards": {"ran": 0, "skipped": 0, "held": 0, "incomplete": 0}, "held_by_others": {}}
+               "shards": {"ran": 0, "skipped": 0, "held": 0, "incomplete": 0}, "held_by_others": {},
+               "recovered": []}
     bar = tqdm(desc="curate", unit="shard", disable=not progress)
     with config.cluster.connect() as address:
         summary["dashboard"] = link = _dashboard(address)
@@ -309,6 +340,7 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
                 _merge(summary["stages"], log["stages"])
                 summary["errors"] += log["errors"] + log["task_failures"]
                 summary["clip_errors"].update(log["clip_errors"])
+                summary["recovered"] += log.get("recovered", [])
                 summary["shards"]["ran"] += 1
                 summary["shards"]["incomplete"] += 0 if log["complete"] else 1
                 bar.update()
@@ -318,7 +350,8 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
         try:
             for shard in iter_shards(config.sources, config.clips, config.shard_size):
                 digest = shard.digest(key)
-                if is_complete(read_manifest(loc, shard.id), digest):
+                manifest = read_manifest(loc, shard.id)
+                if is_complete(manifest, digest) and not _objects_missing(loc, manifest, config.check_skipped_shards):
                     summary["shards"]["skipped"] += 1
                     bar.update()
                     continue
@@ -330,7 +363,8 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
                     logger.warning("shard %s is held by %s; skipped (run again later, or pass --take-over once "
                                    "that driver is gone)", shard.id, other.describe())
                     continue
-                if is_complete(read_manifest(loc, shard.id), digest):
+                fresh = read_manifest(loc, shard.id)
+                if fresh != manifest and is_complete(fresh, digest):
                     # another driver finished it while this one waited for a slot: the check under
                     # the claim is the one that counts
                     release(loc, claim)
@@ -357,18 +391,55 @@ def _finish(loc: Location, summary: dict, started: str) -> dict:
 
     root = open_store(loc)
     index = read_index(loc)
+    every = sorted(set(index["clip"])) if index is not None else []
     clips = sorted(set(index.loc[index["error"].astype(str) == "", "clip"])) if index is not None else []
-    summary["status"] = status_counts(root, clips=clips).to_dict(orient="records")
-    ledger = read_ledger(root, clips=clips)
-    by_reason = ledger.groupby(["stage", "reason_name"]).size().to_dict() if len(ledger) else {}
-    summary["rejections"] = {f"{s}:{r}": int(n) for (s, r), n in by_reason.items()}
+    summary["clips"] = {"curated": len(clips), "unreadable": len(every) - len(clips)}
+    summary["status"], summary["rejections"] = [], {}
+    try:
+        summary["status"] = status_counts(root, clips=clips).to_dict(orient="records")
+        ledger = read_ledger(root, clips=every)  # the unreadable clips' rows too: the ledger's own counts
+        by_reason = ledger.groupby(["stage", "reason_name"]).size().to_dict() if len(ledger) else {}
+        summary["rejections"] = {f"{s}:{r}": int(n) for (s, r), n in by_reason.items()}
+    except CorruptChunk as exc:  # a chunk no task of this run touched: named, with what to run
+        summary["errors"].append(str(exc))
     summary["started"], summary["finished"] = started, now_iso()
     return jsonable(summary)
 
 
+def preflight(config: CurateConfig) -> None:
+    """Cheap checks that would otherwise fail after the cluster started, each with the fix."""
+    from handedit.storage.layout import safe_name
+
+    for i, spec in enumerate(config.clips):
+        try:
+            safe_name("clip id", spec.id)
+        except ValueError as exc:
+            raise PreflightError(f"clips[{i}]: {exc}") from None
+    if config.cluster.address:
+        config.cluster.check_reachable()
+    loc = Location(config.out)
+    if loc.is_local:
+        run_dir = Path(loc.root)
+        if run_dir.is_file() or (Path(loc.path(loc.store_name)).is_file()):
+            raise PreflightError(f"--out {config.out} is a file; give a folder for the run (it holds handedit.zarr)")
+        try:
+            run_dir.mkdir(parents=True, exist_ok=True)
+            probe = run_dir / f".write-test-{os.getpid()}"
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError as exc:
+            raise PreflightError(f"cannot write to --out {config.out} ({exc.strerror or exc}); give a writable folder "
+                                 f"(or fix its permissions / free space)") from None
+
+
 def run_curate(config: CurateConfig, progress: bool = False) -> dict:
-    """Run the driver flow (it starts or connects to the Dask cluster the config names)."""
-    return curate(config, progress=progress)
+    """Run the driver flow (it starts or connects to the Dask cluster the config names) on
+    the run's one Prefect API (``handedit.flows.api``)."""
+    from handedit.flows.api import run_api
+
+    preflight(config)
+    with run_api():
+        return curate(config, progress=progress)
 
 
 __all__ = ["curate", "curate_shard", "run_curate", "CurateConfig", "code_version"]

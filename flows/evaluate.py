@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from prefect import flow, get_run_logger
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 from handedit.flows.benchmark import load_manifest
 from handedit.flows.config import ClusterConfig
@@ -34,6 +34,8 @@ ITEMS_CSV, SUMMARY_JSON = "items.csv", "summary.json"
 
 
 class EvaluateConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
     manifest: Path = Field(description="toolkit JSONL manifest with pred_path filled")
     out: Path = Field(description="results folder (items.csv, summary.json)")
     editor: str = Field(description="the editor's display name in reports")
@@ -98,16 +100,21 @@ def summarise(rows: list[dict], feats: dict, editor: str, skipped: list[str]) ->
             a = [feats[r["id"]][f"{kind}_pred"] for r in ok if f"{kind}_pred" in feats.get(r["id"], {})]
             b = [feats[r["id"]][f"{kind}_gt"] for r in ok if f"{kind}_gt" in feats.get(r["id"], {})]
             means[f"fid_{kind}"] = fid(np.stack(a), np.stack(b)) if len(a) >= 2 and len(b) >= 2 else None
-        tracks[scope] = {"n_items": sum(1 for r in rows if r.get("track") == scope), "n_scored": len(ok), "metrics": means}
+        tracks[scope] = {"n_items": sum(1 for r in rows if r.get("track") == scope), "n_scored": len(ok), "metrics": means,
+                         "n_judge_failed": sum(1 for r in ok if r.get("vlm_error"))}
     errors = [{"id": r["id"], "error": r["error"]} for r in rows if r.get("error")]
+    judge_failures = [{"id": r["id"], "error": r["vlm_error"]} for r in rows if not r.get("error") and r.get("vlm_error")]
     return {"editor": editor, "tracks": tracks, "skipped": sorted(set(skipped)), "errors": errors,
-            "n_items": len(rows), "n_errors": len(errors)}
+            "n_items": len(rows), "n_errors": len(errors), "judge_failures": judge_failures,
+            "n_judge_failures": len(judge_failures)}
 
 
 def run_evaluate(cfg: EvaluateConfig) -> dict:
     from prefect_dask import DaskTaskRunner
 
-    with cfg.cluster.connect() as address:
+    from handedit.flows.api import run_api
+
+    with run_api(), cfg.cluster.connect() as address:
         return evaluate.with_options(task_runner=DaskTaskRunner(address=address))(cfg)
 
 

@@ -12,7 +12,7 @@ import numpy as np
 import zarr
 
 from handedit.storage.layout import BANK_GROUP, BANK_SCHEMA_VERSION, bank_embodiment_path
-from handedit.storage.store import IMAGE_CODEC, StoreError, jsonable
+from handedit.storage.store import IMAGE_CODEC, StoreError, jsonable, read_array
 
 
 @dataclass(frozen=True)
@@ -78,11 +78,11 @@ def read_bank_entry(path: str | Path, embodiment_id: str) -> BankEntry:
         name=str(g.attrs["name"]),
         track=str(g.attrs["track"]),
         description=str(g.attrs["description"]),
-        rgb=g["rgb"][...],
-        mask=g["mask"][...],
-        camera_from_root=g["camera_from_root"][...],
-        qpos=g["qpos"][...],
-        K=g["K"][...],
+        rgb=read_array(g["rgb"], ...),
+        mask=read_array(g["mask"], ...),
+        camera_from_root=read_array(g["camera_from_root"], ...),
+        qpos=read_array(g["qpos"], ...),
+        K=read_array(g["K"], ...),
     )
 
 

@@ -17,6 +17,7 @@ from typing import Any, Iterable, Iterator
 import cv2
 import numpy as np
 
+from handedit.secrets import redact_obj
 from handedit.storage.layout import (BENCH_ITEM_FILES, BENCH_MANIFEST, BENCH_META, BENCH_REPORT, BENCH_VLM_CACHE,
                             bench_item_dir, bench_prediction_dir, bench_ref_paths, bench_results_dir)
 from handedit.storage.store import jsonable
@@ -137,7 +138,7 @@ def read_mask(path: str | Path) -> np.ndarray:
 
 def write_json(path: str | Path, obj: Any) -> Path:
     path = Path(path)
-    _atomic_write(path, (json.dumps(jsonable(obj), indent=2, sort_keys=True) + "\n").encode())
+    _atomic_write(path, (json.dumps(redact_obj(jsonable(obj)), indent=2, sort_keys=True) + "\n").encode())
     return path
 
 
@@ -153,7 +154,7 @@ def read_json(path: str | Path) -> Any:
 
 def write_jsonl(path: str | Path, rows: Iterable[dict]) -> Path:
     path = Path(path)
-    data = "".join(json.dumps(jsonable(r), sort_keys=True) + "\n" for r in rows)
+    data = "".join(json.dumps(redact_obj(jsonable(r)), sort_keys=True) + "\n" for r in rows)
     _atomic_write(path, data.encode())
     return path
 
@@ -163,7 +164,7 @@ def append_jsonl(path: str | Path, row: dict) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "a", encoding="utf-8") as f:
-        f.write(json.dumps(jsonable(row), sort_keys=True) + "\n")
+        f.write(json.dumps(redact_obj(jsonable(row)), sort_keys=True) + "\n")
 
 
 def iter_jsonl(path: str | Path) -> Iterator[tuple[int, dict | None, str | None]]:

@@ -17,6 +17,7 @@ import zarr
 from handedit.reasons import Reason
 from handedit.storage.layout import LEDGER_COLUMNS, STAGE_LEVEL, Unit
 from handedit.storage.provenance import read_records
+from handedit.storage.store import read_array
 
 
 def iter_units(root: zarr.Group, clips=None):
@@ -109,13 +110,13 @@ def status_counts(root: zarr.Group, by_side: bool = False, clips=None) -> pd.Dat
     for unit in iter_units(root, clips):
         group = root[unit.path]
         if by_side and "hand_status" in group:
-            hs = group["hand_status"][:]
+            hs = read_array(group["hand_status"])
             for k, side in enumerate(unit_sides(root, unit)):
                 codes, counts = np.unique(hs[:, k], return_counts=True)
                 rows += [{"stage": unit.stage, "side": side, "status": _reason_name(int(c)), "frames": int(n)}
                          for c, n in zip(codes, counts)]
             continue
-        codes, counts = np.unique(group["status"][:], return_counts=True)
+        codes, counts = np.unique(read_array(group["status"]), return_counts=True)
         rows += [{"stage": unit.stage, "side": None, "status": _reason_name(int(c)), "frames": int(n)}
                  for c, n in zip(codes, counts)]
     cols = ["stage", "side", "status", "frames"] if by_side else ["stage", "status", "frames"]

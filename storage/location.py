@@ -22,7 +22,9 @@ from __future__ import annotations
 import io
 import json
 import os
+import shutil
 import tempfile
+from contextlib import contextmanager
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -157,6 +159,23 @@ class Location:
             return []
         return sorted(e.rstrip("/").rsplit("/", 1)[-1] for e in entries)
 
+    def find(self, rel: str) -> set[str]:
+        """Every file under ``rel``, recursively, as paths relative to ``rel`` (one listing:
+        a directory walk locally, paged LIST calls on object storage)."""
+        base = self.path(rel).rstrip("/")
+        if self.is_local:
+            out = set()
+            for dirpath, _, files in os.walk(base):
+                prefix = os.path.relpath(dirpath, base)
+                out.update(f if prefix == "." else f"{prefix}/{f}" for f in files)
+            return out
+        self.fs.invalidate_cache(base)
+        try:
+            found = self.fs.find(base)
+        except FileNotFoundError:
+            return set()
+        return {p[len(base) + 1:] for p in found if p.startswith(base + "/")}
+
     def read_json(self, rel: str) -> Any:
         data = self.read_bytes(rel)
         return None if data is None else json.loads(data)
@@ -200,3 +219,34 @@ def location_of(root) -> Location:
         proto = store.fs.protocol[0] if isinstance(store.fs.protocol, (tuple, list)) else store.fs.protocol
         return Location(f"{proto}://{store.path.rstrip('/')}")
     return Location(str(store.root))
+
+
+@contextmanager
+def staged_dir(final: str | os.PathLike):
+    """Build a folder beside its final place and move it there only once complete: an
+    interrupted build leaves the previous folder (or none), never a half-written one.
+    A rebuild replaces the previous folder as a whole."""
+    final = Path(final).absolute()
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=final.parent, prefix=f".{final.name}.partial-"))
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    old = final.parent / f".{final.name}.old-{os.getpid()}"
+    if final.exists():
+        os.replace(final, old)
+    os.replace(tmp, final)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
+    """A local file written whole or not at all (temporary file, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    os.replace(tmp, path)
+    return path

@@ -84,6 +84,15 @@ def write_records(root: zarr.Group, unit: Unit, records: list[ChunkRecord]) -> N
     group.attrs.update({PROVENANCE_ATTR: current})
 
 
+def drop_records(root: zarr.Group, unit: Unit, chunks) -> None:
+    """Forget chunks' records (``handedit verify --repair``): they count as never computed."""
+    group = root[unit.path]
+    current = dict(group.attrs.get(PROVENANCE_ATTR) or {})
+    for k in chunks:
+        current.pop(str(k), None)
+    group.attrs.update({PROVENANCE_ATTR: current})
+
+
 def is_current(record: ChunkRecord | dict | None, key: str) -> bool:
     """A stored chunk can be reused: same key, and it completed (errors are retried)."""
     if isinstance(record, dict):

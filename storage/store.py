@@ -24,9 +24,55 @@ from handedit.storage.layout import (ARRAYS, PREVIEW_CANDIDATES, PREVIEW_FRAMES,
 
 IMAGE_CODEC = BloscCodec(cname="zstd", clevel=3, shuffle=BloscShuffle.bitshuffle)
 
+# Every written chunk gets its object, even when it equals the fill value (all-OK status,
+# an empty mask): presence of the object is what a skip checks (handedit.storage.integrity).
+zarr.config.set({"array.write_empty_chunks": True})
+
+REPAIR_HINT = "run `handedit verify DIR --repair`, then `handedit curate` again to recompute it"
+
 
 class StoreError(RuntimeError):
     """A store that cannot be opened or does not match this code's schema."""
+
+
+class CorruptChunk(StoreError):
+    """Stored bytes that do not decode (or fail their checksum), named down to the file."""
+
+    def __init__(self, array_path: str, start: int, stop: int, reason: str, file: str = ""):
+        self.array_path, self.start, self.stop, self.cause, self.file = array_path, start, stop, reason, file
+        where = f" (file {file})" if file else ""
+        super().__init__(f"corrupt chunk in {array_path} frames {start}-{stop - 1}{where}: {reason}; {REPAIR_HINT}")
+
+    def __reduce__(self):  # travels between Dask processes
+        return (CorruptChunk, (self.array_path, self.start, self.stop, self.cause, self.file))
+
+
+def _object_file(array: zarr.Array, key: str) -> str:
+    store = array.store
+    root = getattr(store, "root", None) or getattr(store, "path", "")
+    return f"{str(root).rstrip('/')}/{key}" if root else key
+
+
+def read_array(array: zarr.Array, selection=slice(None)) -> np.ndarray:
+    """``array[selection]``, with a decode or checksum error turned into ``CorruptChunk``
+    naming the array, the frames and the file of the first bad object (a slow search that
+    runs only after a failure)."""
+    try:
+        return array[selection]
+    except Exception as exc:  # noqa: BLE001 - codecs raise many types; re-raised below when not a decode error
+        if isinstance(exc, (KeyError, IndexError, TypeError, MemoryError)):
+            raise
+        reason = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
+    from handedit.storage.integrity import object_keys
+
+    step = (array.shards or array.chunks)[0]
+    for start in range(0, array.shape[0], step):
+        stop = min(start + step, array.shape[0])
+        try:
+            array[start:stop]
+        except Exception:  # noqa: BLE001 - this is the bad object
+            raise CorruptChunk(array.path, start, stop, reason, _object_file(array, object_keys(array, start, stop)[0])) from None
+    raise CorruptChunk(array.path, 0, array.shape[0], reason)
 
 
 def jsonable(obj: Any) -> Any:
@@ -70,12 +116,26 @@ def open_store(where, mode: str = "r") -> zarr.Group:
     loc = _location(where)
     if not loc.store_exists():
         raise StoreError(f"{loc.store_url} is not a handedit store (no zarr.json); run `handedit curate --out DIR` to make one")
-    root = zarr.open_group(loc.zarr_store(read_only=mode == "r"), mode=mode)
+    root = _open_group(loc, mode)
     version = root.attrs.get("schema_version")
     if version != SCHEMA_VERSION:
         raise StoreError(f"{loc.store_url} has schema {version}, this code reads schema {SCHEMA_VERSION}; "
                          f"re-curate into a new store")
     return root
+
+
+def _open_group(loc, mode: str) -> zarr.Group:
+    try:
+        return zarr.open_group(loc.zarr_store(read_only=mode == "r"), mode=mode)
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise StoreError(f"{loc.store_url}/zarr.json is not valid JSON ({exc}); the store's root metadata is damaged: "
+                         f"restore it from a backup, or curate into a new --out") from None
+
+
+def metadata_error(loc, exc: Exception) -> StoreError:
+    """A truncated or garbled ``zarr.json`` below the root, as one message."""
+    return StoreError(f"{loc.store_url}: a group or array's zarr.json is damaged ({exc}); run `handedit verify "
+                      f"{loc.url}` to find it, then delete that clip's folder and run `handedit curate` again")
 
 
 def create_or_open_store(where, frames_per_chunk: int, code_version: str) -> zarr.Group:
@@ -175,11 +235,12 @@ def write_previews(root: zarr.Group, unit: Unit, candidates: list[int], frames: 
 
 def read_previews(root: zarr.Group, unit: Unit, side: str) -> dict[str, np.ndarray]:
     group = root[preview_path(unit, side)]
-    cands = group["candidates"][:]
+    cands = read_array(group["candidates"])
     k = int((cands >= 0).sum())
-    frames = group["frames"][:]
+    frames = read_array(group["frames"])
     p = int((frames >= 0).sum())
-    return {"candidates": cands[:k], "frames": frames[:p], "ego": group["ego"][:k, :p], "third": group["third"][:k, :p]}
+    return {"candidates": cands[:k], "frames": frames[:p], "ego": read_array(group["ego"], np.s_[:k, :p]),
+            "third": read_array(group["third"], np.s_[:k, :p])}
 
 
 def digest(array: np.ndarray) -> str:
@@ -206,14 +267,29 @@ def write_chunk(root: zarr.Group, unit: Unit, start: int, arrays: Mapping[str, n
         stop = start + value.shape[0]
         if value.shape[1:] != tuple(target.shape[1:]) or stop > target.shape[0]:
             raise ValueError(f"{unit.label}/{name}: got {value.shape} at {start}, array is {target.shape}")
-        target[start:stop] = value
+        try:
+            target[start:stop] = value
+        except Exception as exc:  # noqa: BLE001 - a partial shard write reads the old shard first
+            if isinstance(exc, (KeyError, IndexError, TypeError, MemoryError, OSError)):
+                raise
+            _delete_objects(target, start, stop)  # its bytes are garbage: this chunk replaces them whole
+            target[start:stop] = value
         digests[name] = digest(value)
     return digests
 
 
+def _delete_objects(array: zarr.Array, start: int, stop: int) -> None:
+    from zarr.core.sync import sync
+
+    from handedit.storage.integrity import object_keys
+
+    for key in object_keys(array, start, stop):
+        sync(array.store.delete(key))
+
+
 def read_chunk(root: zarr.Group, unit: Unit, names: Iterable[str], start: int, stop: int) -> dict[str, np.ndarray]:
     group = root[unit.path]
-    return {name: group[name][start:stop] for name in names}
+    return {name: read_array(group[name], slice(start, stop)) for name in names}
 
 
 def has_array(root: zarr.Group, unit: Unit, name: str) -> bool:

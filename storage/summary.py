@@ -29,6 +29,7 @@ from handedit.storage.layout import Unit
 from handedit.storage.ledger import iter_units, read_ledger, status_counts, unit_sides
 from handedit.storage.location import Location, location_of
 from handedit.storage.shards import INDEX, read_partitions
+from handedit.storage.store import read_array
 
 INDEX_COLUMNS = ("clip", "embodiment", "scope", "side", "frames", "kept", "error")
 
@@ -41,8 +42,8 @@ def index_rows(root: zarr.Group, clips, source_errors: dict[str, str] | None = N
         if unit.stage != "qc":
             continue
         group = root[unit.path]
-        status = group["status"][:]
-        hs = group["hand_status"][:] if "hand_status" in group else None
+        status = read_array(group["status"])
+        hs = read_array(group["hand_status"]) if "hand_status" in group else None
         sides = unit_sides(root, unit)
         scope = (embodiments or {}).get(unit.embodiment, {}).get("scope", "")
         if hs is None or len(sides) == 1:
@@ -104,4 +105,4 @@ def run_summary(root: zarr.Group, store: str = "", clips=None) -> dict:
 
 def kept_frames(root: zarr.Group, clip: str, embodiment: str) -> np.ndarray:
     """Frame indices of a clip x embodiment that QC kept."""
-    return np.flatnonzero(root[Unit("qc", clip, embodiment=embodiment).path]["status"][:] == Reason.OK)
+    return np.flatnonzero(read_array(root[Unit("qc", clip, embodiment=embodiment).path]["status"]) == Reason.OK)

@@ -34,7 +34,10 @@ from handedit.reasons import Reason
 from handedit.storage import Unit, create_unit, read_records, write_records
 from handedit.storage.layout import STAGES
 from handedit.storage.provenance import is_current, provenance_key
-from handedit.storage.store import create_previews, jsonable
+from handedit.storage.integrity import missing_objects, stored_objects
+from handedit.storage.location import location_of
+from handedit.storage.provenance import drop_records
+from handedit.storage.store import CorruptChunk, create_previews, jsonable
 from handedit.tasks.common import RETRIES, RETRY_DELAYS, ChunkJob, execute, failure_record, is_transient, open_root
 
 CLIP_STAGES = ("ingest", "registration", "segment", "restore_background")
@@ -66,6 +69,7 @@ class WalkResult:
     clip: str
     stages: dict = field(default_factory=dict)  # stage -> {ran, skipped, failed}
     errors: list = field(default_factory=list)
+    recovered: list = field(default_factory=list)  # chunks recomputed because their data was gone or corrupt
     source_error: str | None = None
     seconds: float = 0.0
 
@@ -115,14 +119,16 @@ def _faulty(config, unit: Unit) -> bool:
 
 
 def walk(nodes, stage_params, records: dict, run_node, on_record, result: WalkResult, faulty=lambda unit: False,
-         prefail=None) -> WalkResult:
+         prefail=None, missing=None) -> WalkResult:
     """Run chunk nodes in streaming dependency order, skipping current ones (pure: no store).
 
     ``stage_params(stage) -> (version, params)``; ``records``: (unit, chunk) -> record of
     every chunk already stored (this task's units and the units it reads), updated as it
     goes; ``run_node(node, key, inputs, version, params, fault) -> record`` runs one chunk
     (a record with ``outcome="error"`` counts as failed); ``prefail(node, ...)`` may return
-    a failure record instead of running it; ``on_record(node, record)`` persists a new record.
+    a failure record instead of running it; ``on_record(node, record)`` persists a new record;
+    ``missing(node, record) -> [object keys]`` names stored outputs a current record vouches
+    for that are gone: such a chunk is recomputed, and noted in ``result.recovered``.
     """
     from handedit.flows.dag import node_inputs
 
@@ -130,14 +136,21 @@ def walk(nodes, stage_params, records: dict, run_node, on_record, result: WalkRe
         version, p = stage_params(node.unit.stage)
         inputs = node_inputs(node, records)
         key = provenance_key(node.unit.stage, version, p, inputs)
+        note = None
         if is_current(records.get(node.id), key):
-            result.count(node.unit.stage, "skipped")
-            continue
+            gone = missing(node, records[node.id]) if missing is not None else []
+            if not gone:
+                result.count(node.unit.stage, "skipped")
+                continue
+            note = f"{node.unit.label}#{node.chunk}: recomputed, its stored data was missing ({', '.join(gone[:3])})"
+            result.recovered.append(note)
         record = prefail(node, key, inputs, version, p) if prefail is not None else None
         if record is None:
             record = run_node(node, key, inputs, version, p, faulty(node.unit))
             if record.get("outcome") == "error":  # to retry next run (prefailed chunks are the plan's own)
                 result.errors.append(f"{node.unit.label}#{node.chunk}: {record.get('error')}")
+        if note:
+            record.setdefault("extra", {})["recovered"] = note
         result.count(node.unit.stage, "failed" if record.get("outcome") == "error" else "ran")
         on_record(node, record)
         records[node.id] = record
@@ -164,8 +177,48 @@ def _walk_store(root, store: str, nodes, config, code_version: str, result: Walk
     def pre(node, key, inputs, version, p):
         return None if prefail is None else prefail(root, job_of(node, key, inputs, version, p))
 
-    return walk(nodes, params.__getitem__, records, run_node, lambda n, r: write_records(root, n.unit, [_record(r)]),
-                result, faulty=lambda u: _faulty(config, u), prefail=pre)
+    own = {n.unit for n in nodes}
+    present: dict = {}  # unit -> its stored objects: listed once, only when a skip needs it
+    corrupt: set = set()  # (unit, chunk) of this task's own units whose stored bytes failed to decode
+
+    def missing(node, record) -> list[str]:
+        if node.unit not in present:
+            present[node.unit] = stored_objects(location_of(root), node.unit.path)
+        return missing_objects(root, node.unit, record, present[node.unit])
+
+    def run_noting(node, key, inputs, version, p, fault) -> dict:
+        record = run_node(node, key, inputs, version, p, fault)
+        if record.get("corrupt"):
+            corrupt.update(_owned_chunk(record["corrupt"], own, config.frames_per_chunk))
+        return record
+
+    def run(into: WalkResult) -> WalkResult:
+        return walk(nodes, params.__getitem__, records, run_noting, lambda n, r: write_records(root, n.unit, [_record(r)]),
+                    into, faulty=lambda u: _faulty(config, u), prefail=pre, missing=missing)
+
+    run(result)
+    if corrupt:  # a corrupt chunk this task owns: recompute it, then the chunks that failed reading it
+        for unit, chunk in sorted(corrupt):
+            records.pop((unit, chunk), None)
+            drop_records(root, unit, [chunk])
+            result.recovered.append(f"{unit.label}#{chunk}: recomputed, its stored bytes were corrupt")
+        again = run(WalkResult(result.clip))
+        for stage, c in again.stages.items():  # the second pass replaces those chunks' first outcome
+            n, mine = c["ran"] + c["failed"], result.stages[stage]
+            took = min(n, mine["failed"])
+            mine["failed"] -= took
+            mine["skipped"] -= n - took
+            mine["ran"] += c["ran"]
+            mine["failed"] += c["failed"]
+        result.errors = [e for e in result.errors if "CorruptChunk" not in e] + again.errors
+        result.recovered += again.recovered
+    return result
+
+
+def _owned_chunk(corrupt: dict, units, f: int) -> list:
+    """[(unit, chunk)] a CorruptChunk's array path and frames point to, if one of ``units``."""
+    unit_path = corrupt["array"].rsplit("/", 1)[0]
+    return [(u, int(corrupt["start"]) // f) for u in units if u.path == unit_path]
 
 
 def _record(data: dict):
@@ -186,7 +239,10 @@ def _run(root, job: ChunkJob, body) -> dict:
                 time.sleep(RETRY_DELAYS[attempt])
                 continue
             reason = Reason(int(getattr(exc, "reason", Reason.STAGE_ERROR)))
-            return failure_record(job, root, reason, f"{type(exc).__name__}: {exc}", attempt + 1)
+            record = failure_record(job, root, reason, f"{type(exc).__name__}: {exc}", attempt + 1)
+            if isinstance(exc, CorruptChunk):
+                record["corrupt"] = {"array": exc.array_path, "start": exc.start, "stop": exc.stop}
+            return record
     raise AssertionError("unreachable")
 
 

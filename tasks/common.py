@@ -17,6 +17,7 @@ import numpy as np
 import zarr
 
 from handedit.reasons import Reason
+from handedit.secrets import redact
 from handedit.storage import ChunkRecord, Unit, write_chunk
 from handedit.storage.store import now_iso
 
@@ -143,8 +144,10 @@ def make_record(
 ) -> dict:
     codes, counts = np.unique(status, return_counts=True)
 
+    error = redact(error)  # exception texts can carry URLs with tokens, echoed headers
+
     def text(code: int, given: str | None) -> str:
-        return given or error or Reason(code).name.lower().replace("_", " ")
+        return redact(given) or error or Reason(code).name.lower().replace("_", " ")
 
     if hand_status is None:
         rejections = [{"frame": job.start + int(i), "reason": int(status[i]), "detail": text(int(status[i]), details.get(int(i)))}

@@ -4,6 +4,7 @@
   source (nothing was edited), else 5/4/4/5; PQ replies 4/4/3. ``malformed_next``
   makes the next N replies unparseable; ``fail_always`` makes every reply malformed.
 - POST /v1/images/edits: an editor that returns the first uploaded image (b64_json).
+``echo_errors`` answers 401 with the request headers echoed; ``delay_s`` delays answers.
 Every request is recorded in ``requests``.
 """
 
@@ -13,6 +14,7 @@ import base64
 import json
 import re
 import threading
+import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import cv2
@@ -29,6 +31,8 @@ class FakeOpenAI:
         self.requests: list[dict] = []
         self.malformed_next = 0
         self.fail_always = False
+        self.echo_errors = False  # answer 401 with the request's headers in the body (as some proxies do)
+        self.delay_s = 0.0  # sleep before answering (timeouts)
         self.lock = threading.Lock()
         outer = self
 
@@ -38,6 +42,15 @@ class FakeOpenAI:
 
             def do_POST(self):
                 body = self.rfile.read(int(self.headers.get("Content-Length", 0)))
+                if outer.delay_s:
+                    time.sleep(outer.delay_s)
+                if outer.echo_errors:
+                    data = json.dumps({"error": "unauthorized", "request_headers": dict(self.headers)}).encode()
+                    self.send_response(401)
+                    self.send_header("Content-Length", str(len(data)))
+                    self.end_headers()
+                    self.wfile.write(data)
+                    return
                 if self.path.endswith("/chat/completions"):
                     reply = outer.chat(json.loads(body), self.headers)
                 elif self.path.endswith("/images/edits"):

@@ -42,7 +42,7 @@ def _editor(args: argparse.Namespace):
     from handedit.benchmark.editors import CommandEditor, HttpEditorConfig, HttpImageEditor
 
     if args.editor == "http":
-        return HttpImageEditor(HttpEditorConfig.from_env(base_url=args.base_url, model=args.model))
+        return HttpImageEditor(HttpEditorConfig.from_env(base_url=args.base_url, model=args.model, timeout_s=args.timeout))
     if not args.command:
         raise SystemExit("handedit bench run --editor cmd needs --command TEMPLATE (with {src} {ref} {prompt_file} {out})")
     return CommandEditor(args.command, model=args.model or args.name)
@@ -64,6 +64,11 @@ def cmd_run(args: argparse.Namespace) -> int:
           f"skipped (done before) {summary.skipped}; {cost}; {summary.seconds:.1f}s")
     for f in summary.failures[:10]:
         print(f"  {f['id']}: {f['error']}")
+    if summary.wrong_size:
+        print(f"{len(summary.wrong_size)} prediction(s) not at the source's size (flagged wrong_size in records.jsonl; "
+              f"scoring resizes them):")
+        for w in summary.wrong_size[:10]:
+            print(f"  {w['id']}: {w['size']} for a {w['source']} source")
     return 1 if summary.failed else 0
 
 
@@ -89,12 +94,15 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                          cluster=ClusterConfig(address=args.address, n_workers=args.workers))
     summary = run_evaluate(cfg)
     for scope, t in summary["tracks"].items():
-        print(f"{scope}: {t['n_scored']}/{t['n_items']} scored")
+        judged = f", {t['n_judge_failed']} judge failure(s) (no VLM score)" if t.get("n_judge_failed") else ""
+        print(f"{scope}: {t['n_scored']}/{t['n_items']} scored{judged}")
         print("  " + json.dumps({k: (round(v, 4) if v is not None else None) for k, v in t["metrics"].items()}))
     if summary["skipped"]:
         print(f"skipped metrics: {', '.join(summary['skipped'])}", file=sys.stderr)
     for e in summary["errors"][:10]:
         print(f"  {e['id']}: {e['error']}", file=sys.stderr)
+    for e in summary.get("judge_failures", [])[:10]:
+        print(f"  judge failed on {e['id']}: {e['error']}", file=sys.stderr)
     print(f"results: {out}")
     return 0
 
@@ -143,6 +151,7 @@ def register(subparsers) -> None:
     r.add_argument("--command", help="command template for --editor cmd")
     r.add_argument("--concurrency", type=int, default=4)
     r.add_argument("--tries", type=int, default=3)
+    r.add_argument("--timeout", type=float, default=300.0, help="seconds per HTTP try (--editor http)")
     r.add_argument("--limit", type=int)
     r.add_argument("--price-per-image", type=float, help="USD, when the model is not in the paper's roster")
     r.set_defaults(func=cmd_run)

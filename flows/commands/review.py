@@ -123,7 +123,7 @@ def _write_previews(root, args, found) -> int:
     import numpy as np
 
     from handedit.storage import Unit
-    from handedit.storage.store import read_previews
+    from handedit.storage.store import read_array, read_previews
 
     (c, e, sd), vb = next(iter(found.items()))
     pv = read_previews(root, Unit("retarget", c, embodiment=e), sd)
@@ -136,7 +136,7 @@ def _write_previews(root, args, found) -> int:
     for i, cand in enumerate(pv["candidates"]):
         for j, f in enumerate(pv["frames"]):
             rgba = pv["ego"][i, j].astype(float) / 255
-            over = (frames_rgb[f] * (1 - rgba[..., 3:]) + 255 * rgba[..., :3] * rgba[..., 3:]).astype(np.uint8)
+            over = (read_array(frames_rgb, f) * (1 - rgba[..., 3:]) + 255 * rgba[..., :3] * rgba[..., 3:]).astype(np.uint8)
             cv2.imwrite(str(out / f"{c}_{e}_{sd}_cand{cand}_ego_f{f:05d}.png"), cv2.cvtColor(over, cv2.COLOR_RGB2BGR))
             cv2.imwrite(str(out / f"{c}_{e}_{sd}_cand{cand}_third_f{f:05d}.png"), cv2.cvtColor(pv["third"][i, j], cv2.COLOR_RGBA2BGRA))
     print(f"previews of candidates {list(pv['candidates'])} -> {out}")

@@ -28,10 +28,12 @@ from pathlib import Path
 
 from pydantic import BaseModel, Field, SecretStr
 
+from handedit.secrets import redact, register
+
 
 class EditorError(RuntimeError):
     def __init__(self, message: str, transient: bool = False):
-        super().__init__(message)
+        super().__init__(redact(message))  # an error body may echo the request's headers
         self.transient = transient
 
 
@@ -49,7 +51,7 @@ class HttpEditorConfig(BaseModel):
     base_url: str
     model: str
     api_key: SecretStr | None = None
-    timeout_s: float = 300.0
+    timeout_s: float = Field(300.0, gt=0, description="seconds per try (`bench run --timeout`)")
     size: str | None = Field(None, description="optional 'WxH' sent as size; default: the API's default")
 
     @classmethod
@@ -69,6 +71,7 @@ class HttpImageEditor:
     def __init__(self, cfg: HttpEditorConfig):
         self.cfg = cfg
         self.model = cfg.model
+        register(cfg.api_key)
 
     def edit(self, req: EditRequest) -> bytes:
         fields = [("model", self.cfg.model), ("prompt", req.instruction), ("n", "1")]
@@ -87,6 +90,9 @@ class HttpImageEditor:
             detail = exc.read()[:300].decode(errors="replace")
             raise EditorError(f"HTTP {exc.code} from {url}: {detail}", transient=exc.code == 429 or exc.code >= 500) from None
         except (urllib.error.URLError, TimeoutError, ConnectionError) as exc:
+            if isinstance(exc, TimeoutError) or isinstance(getattr(exc, "reason", None), TimeoutError):
+                raise EditorError(f"{url} timed out after {self.cfg.timeout_s:g} s (raise --timeout for slow models)",
+                                  transient=True) from None
             raise EditorError(f"cannot reach {url}: {exc}", transient=True) from None
         except json.JSONDecodeError as exc:
             raise EditorError(f"{url} answered non-JSON ({exc})", transient=True) from None

@@ -30,6 +30,8 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, Field, SecretStr
 
+from handedit.secrets import redact, register
+
 SC_PROMPT = """You are evaluating an image editing result for a benchmark on egocentric hand-to-dexterous-robot image editing.
 
 You are given:
@@ -174,6 +176,7 @@ class VlmJudge:
 
     def __init__(self, cfg: JudgeConfig):
         self.cfg = cfg
+        register(cfg.api_key)
         if cfg.cache_dir:
             Path(cfg.cache_dir).mkdir(parents=True, exist_ok=True)
 
@@ -194,7 +197,7 @@ class VlmJudge:
             errors.append(f"PQ: {exc}")
         sc = aspect_score(sc_scores, SC_FIELDS) if sc_scores else float("nan")
         pq = aspect_score(pq_scores, PQ_FIELDS) if pq_scores else float("nan")
-        return Judgment(sc, pq, vlm_score(sc, pq), sc_scores, pq_scores, errors, calls)
+        return Judgment(sc, pq, vlm_score(sc, pq), sc_scores, pq_scores, [redact(e) for e in errors], calls)
 
     def ask(self, prompt: str, images: list[np.ndarray], fields: tuple[str, ...]) -> tuple[dict, int]:
         """One validated answer (from the cache, or up to ``max_tries`` calls)."""
@@ -224,7 +227,7 @@ class VlmJudge:
                 tmp.write_text(json.dumps({"content": text, "model": self.cfg.model}))
                 os.replace(tmp, cached)
             return answer, attempt + 1
-        raise RuntimeError(f"no valid answer after {self.cfg.max_tries} tries; last: {last}")
+        raise RuntimeError(redact(f"no valid answer after {self.cfg.max_tries} tries; last: {last}"))
 
     def _cache_path(self, key: str) -> Path | None:
         return Path(self.cfg.cache_dir) / f"{key}.json" if self.cfg.cache_dir else None

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 from handedit.camera import Intrinsics
 from handedit.reasons import Reason
@@ -14,6 +14,8 @@ from handedit.reasons import Reason
 
 class RenderConfig(BaseModel):
     """Render settings; ``decimate`` trades mesh detail for speed (bench/render.py)."""
+
+    model_config = ConfigDict(extra="forbid")
 
     VERSION: ClassVar[int] = 3  # 3: decimate only simplifies dense meshes, silhouette-checked
     decimate: float | None = Field(None, gt=0.0, le=1.0, description="fraction of faces kept")

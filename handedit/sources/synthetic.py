@@ -50,6 +50,8 @@ _SEG_HAND, _SEG_ARM, _SEG_OBJ = (255, 0, 0), (0, 255, 0), (0, 0, 255)
 class SyntheticSpec(pydantic.BaseModel):
     """A synthetic clip; every pixel is a function of these fields (picklable, cheap)."""
 
+    model_config = pydantic.ConfigDict(extra="forbid")
+
     kind: Literal["synthetic"] = "synthetic"
     clip_id: str = "synthetic-0000"
     seed: int = 0

@@ -1,0 +1,82 @@
+"""Secrets stay secret: one redaction for every error text, log line and record.
+
+An HTTP error body may echo the request headers, an exception may print a URL with a
+token: any of it can end up in ``records.jsonl``, provenance, the ledger or a terminal.
+``redact`` replaces every known secret value (the editor's and judge's configured keys,
+registered with ``register``, and the values of ``*_API_KEY``, ``*_TOKEN``, ``*_SECRET*``
+and ``*_PASSWORD`` environment variables) and any ``Authorization`` / ``Bearer`` value by
+``[redacted]``. ``install_log_filter`` applies it to every log record of the process.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import threading
+
+MARK = "[redacted]"
+_SECRET_ENV = re.compile(r"(API_KEY|TOKEN|SECRET|PASSWORD)", re.IGNORECASE)
+_HEADER = re.compile(r"(?i)(authorization['\"]?\s*[:=]\s*['\"]?)(?:(bearer|basic|token)\s+)?[^\s'\",}]+")
+_BEARER = re.compile(r"(?i)\b(bearer)\s+[A-Za-z0-9._~+/=-]{6,}")
+_MIN_LEN = 6  # shorter values (e.g. "1", "true") would redact ordinary text
+
+_registered: set[str] = set()
+_lock = threading.Lock()
+
+
+def register(*values) -> None:
+    """Secrets known to this process besides the environment's (e.g. a configured key)."""
+    with _lock:
+        for v in values:
+            text = v.get_secret_value() if hasattr(v, "get_secret_value") else v
+            if text and len(str(text)) >= _MIN_LEN:
+                _registered.add(str(text))
+
+
+def known_secrets() -> list[str]:
+    env = [v for k, v in os.environ.items() if _SECRET_ENV.search(k) and v and len(v) >= _MIN_LEN]
+    with _lock:
+        return sorted({*env, *_registered}, key=len, reverse=True)  # longest first: no partial leftovers
+
+
+def redact(text, extra=()) -> str:
+    """``text`` with every secret value and credential header replaced by ``[redacted]``."""
+    if text is None:
+        return text
+    out = str(text)
+    register(*extra)
+    for s in known_secrets():
+        out = out.replace(s, MARK)
+    out = _HEADER.sub(lambda m: m.group(1) + (m.group(2) + " " if m.group(2) else "") + MARK, out)
+    return _BEARER.sub(lambda m: f"{m.group(1)} {MARK}", out)
+
+
+def redact_obj(obj):
+    """A JSON-like value with every string redacted (records before they are written)."""
+    if isinstance(obj, str):
+        return redact(obj)
+    if isinstance(obj, dict):
+        return {k: redact_obj(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(redact_obj(v) for v in obj)
+    return obj
+
+
+class RedactingFilter(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        msg = record.getMessage()
+        clean = redact(msg)
+        if clean != msg:
+            record.msg, record.args = clean, None
+        return True
+
+
+def install_log_filter() -> None:
+    """Redact every log record of this process, whichever handler writes it."""
+    f = RedactingFilter()
+    loggers = [logging.getLogger(), *(logging.getLogger(n) for n in list(logging.root.manager.loggerDict))]
+    for lg in loggers:
+        for h in getattr(lg, "handlers", []):
+            if not any(isinstance(x, RedactingFilter) for x in h.filters):
+                h.addFilter(f)

@@ -1,0 +1,149 @@
+"""Integrity: does the data a provenance record vouches for exist, and is it intact?
+
+A chunk record names the arrays it wrote and their content digests. Two checks use that:
+
+- presence (cheap, metadata only): every storage object (a Zarr chunk or shard file)
+  covering the record's frames exists. One recursive listing per clip answers it for all
+  of the clip's units, locally or on object storage. ``curate`` runs it before skipping a
+  chunk, and for every complete shard before skipping the shard; ``release`` and ``bench
+  build`` run it before publishing.
+- content (``--deep``): the stored frames re-hash to the recorded digest, which also
+  catches garbage bytes (a decode or checksum error is reported the same way).
+
+``repair`` drops the records of every problem chunk and marks their shards incomplete,
+so the next ``curate`` recomputes exactly those chunks; what depends on them is then
+recomputed only if the recomputed data differs (the inputs are content digests).
+
+Every array is written with ``write_empty_chunks`` on (``handedit.storage.store``), so a
+chunk that was written always has its object, even when it holds only the fill value.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+
+import zarr
+
+from handedit.storage.layout import Unit, clip_path
+from handedit.storage.provenance import ChunkRecord, read_records
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One chunk whose data does not back its record."""
+
+    unit: Unit
+    chunk: int
+    array: str  # path inside the store, e.g. clips/c/embodiments/allegro/harmonize/image
+    start: int
+    stop: int
+    kind: str  # missing | mismatch | unreadable
+    detail: str = ""
+
+    def describe(self) -> str:
+        return f"{self.array} frames {self.start}-{self.stop - 1} (chunk {self.chunk}): {self.kind}" + (
+            f" ({self.detail})" if self.detail else "")
+
+    def to_json(self) -> dict:
+        return {"unit": self.unit.label, "clip": self.unit.clip, "stage": self.unit.stage, "chunk": self.chunk,
+                "array": self.array, "frames": [self.start, self.stop], "kind": self.kind, "detail": self.detail}
+
+
+def object_keys(array: zarr.Array, start: int, stop: int) -> list[str]:
+    """Store keys of the objects (chunk files, or shard files) holding frames [start, stop)."""
+    grid = array.shards or array.chunks
+    first = range(start // grid[0], (stop - 1) // grid[0] + 1)
+    rest = [range(math.ceil(s / g)) for s, g in zip(array.shape[1:], grid[1:])]
+    enc = array.metadata.chunk_key_encoding
+    return [f"{array.path}/{enc.encode_chunk_key(c)}" for c in itertools.product(first, *rest)]
+
+
+def _output_array(root: zarr.Group, unit: Unit, name: str):
+    """The array a record's output ``name`` refers to (None for outputs kept elsewhere)."""
+    if "/" in name:  # previews/<name>: per-side review previews, checked by their own digests
+        return None
+    path = f"{unit.path}/{name}"
+    return root[path] if path in root else None
+
+
+def stored_objects(loc, prefix: str) -> set[str]:
+    """Store keys of every object under ``prefix`` (a clip's or a unit's path): one listing."""
+    return {f"{prefix}/{k}" for k in loc.find(f"{loc.store_name}/{prefix}")}
+
+
+def missing_objects(root: zarr.Group, unit: Unit, record: ChunkRecord | dict, present: set[str]) -> list[str]:
+    """Output objects a record vouches for that are not in ``present`` (a listing)."""
+    rec = record if isinstance(record, ChunkRecord) else ChunkRecord.from_json(record)
+    missing = []
+    for name in rec.outputs:
+        arr = _output_array(root, unit, name)
+        if arr is None and "/" not in name:
+            missing.append(f"{unit.path}/{name}")
+            continue
+        if arr is not None:
+            missing += [k for k in object_keys(arr, rec.start, rec.stop) if k not in present]
+    return missing
+
+
+def check_unit(root: zarr.Group, unit: Unit, present: set[str], deep: bool = False) -> list[Problem]:
+    """Problems of one unit's chunks (records with outcome ``ok`` or ``error`` alike)."""
+    from handedit.storage.store import CorruptChunk, digest, read_array
+
+    problems = []
+    for k, rec in sorted(read_records(root, unit).items()):
+        for name, want in rec.outputs.items():
+            arr = _output_array(root, unit, name)
+            if arr is None:
+                if "/" not in name:
+                    problems.append(Problem(unit, k, f"{unit.path}/{name}", rec.start, rec.stop, "missing",
+                                            "the array itself is gone"))
+                continue
+            gone = [key for key in object_keys(arr, rec.start, rec.stop) if key not in present]
+            if gone:
+                problems.append(Problem(unit, k, arr.path, rec.start, rec.stop, "missing", ", ".join(gone[:3])))
+                continue
+            if deep:
+                try:
+                    got = digest(read_array(arr, slice(rec.start, rec.stop)))
+                except CorruptChunk as exc:
+                    problems.append(Problem(unit, k, arr.path, rec.start, rec.stop, "unreadable", exc.cause))
+                    continue
+                if got != want:
+                    problems.append(Problem(unit, k, arr.path, rec.start, rec.stop, "mismatch",
+                                            f"digest {got[:12]} != recorded {want[:12]}"))
+    return problems
+
+
+def verify(loc, clips=None, deep: bool = False) -> list[Problem]:
+    """Every problem chunk of the store (or of ``clips``): see the module doc."""
+    from handedit.storage.ledger import iter_units
+    from handedit.storage.store import open_store
+
+    root = open_store(loc)
+    if clips is None:
+        clips = sorted(root["clips"].group_keys()) if "clips" in root else []
+    problems: list[Problem] = []
+    for clip in clips:
+        present = stored_objects(loc, clip_path(clip))
+        for unit in iter_units(root, [clip]):
+            problems += check_unit(root, unit, present, deep=deep)
+    return problems
+
+
+def repair(loc, problems: list[Problem]) -> dict:
+    """Drop the records of the problem chunks; mark the shards holding their clips
+    incomplete. The next ``curate`` recomputes exactly those chunks."""
+    from handedit.storage.provenance import drop_records
+    from handedit.storage.shards import invalidate
+    from handedit.storage.store import open_store
+
+    root = open_store(loc, mode="r+")
+    by_unit: dict[Unit, set[int]] = {}
+    for p in problems:
+        by_unit.setdefault(p.unit, set()).add(p.chunk)
+    for unit, chunks in by_unit.items():
+        drop_records(root, unit, chunks)
+    shards = invalidate(loc, sorted({p.unit.clip for p in problems}))
+    return {"records_dropped": sum(len(c) for c in by_unit.values()), "units": len(by_unit), "shards": shards}
