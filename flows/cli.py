@@ -294,6 +294,10 @@ def main(argv: list[str] | None = None) -> int:
     except StoreError as exc:  # a damaged or unusable store, named down to the file: one message
         print(f"handedit {args.command}: {exc}", file=sys.stderr)
         return 2
+    except json.JSONDecodeError as exc:  # a group's or array's zarr.json below the root
+        print(f"handedit {args.command}: a zarr.json in the store is damaged ({exc}); run `handedit verify DIR` to "
+              f"find it and `handedit verify DIR --repair` to rebuild it on the next curate", file=sys.stderr)
+        return 2
     except OSError as exc:  # disk full, read-only, permissions: which file, and what to do
         import errno
 

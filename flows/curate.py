@@ -438,8 +438,22 @@ def run_curate(config: CurateConfig, progress: bool = False) -> dict:
     from handedit.flows.api import run_api
 
     preflight(config)
-    with run_api():
+    with run_api() as api:
+        _warn_unreachable_api(api, config)
         return curate(config, progress=progress)
+
+
+def _warn_unreachable_api(api: str, config: CurateConfig) -> None:
+    import logging
+    from urllib.parse import urlparse
+
+    local = ("127.0.0.1", "localhost", "::1")
+    remote = config.cluster.cluster_class or (config.cluster.address and urlparse(
+        config.cluster.address if "://" in config.cluster.address else f"tcp://{config.cluster.address}").hostname not in local)
+    if remote and urlparse(api).hostname in local:
+        logging.getLogger("handedit.curate").warning(
+            "the run's Prefect API is %s, which workers on other hosts cannot reach: run `prefect server start` on a "
+            "host they can reach and set PREFECT_API_URL on the driver and the workers", api)
 
 
 __all__ = ["curate", "curate_shard", "run_curate", "CurateConfig", "code_version"]

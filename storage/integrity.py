@@ -21,6 +21,7 @@ chunk that was written always has its object, even when it holds only the fill v
 from __future__ import annotations
 
 import itertools
+import json
 import math
 from dataclasses import dataclass
 
@@ -39,10 +40,12 @@ class Problem:
     array: str  # path inside the store, e.g. clips/c/embodiments/allegro/harmonize/image
     start: int
     stop: int
-    kind: str  # missing | mismatch | unreadable
+    kind: str  # missing | mismatch | unreadable | damaged metadata
     detail: str = ""
 
     def describe(self) -> str:
+        if self.chunk < 0:
+            return f"{self.array}/zarr.json: {self.kind} ({self.detail})"
         return f"{self.array} frames {self.start}-{self.stop - 1} (chunk {self.chunk}): {self.kind}" + (
             f" ({self.detail})" if self.detail else "")
 
@@ -127,9 +130,23 @@ def verify(loc, clips=None, deep: bool = False) -> list[Problem]:
     problems: list[Problem] = []
     for clip in clips:
         present = stored_objects(loc, clip_path(clip))
-        for unit in iter_units(root, [clip]):
-            problems += check_unit(root, unit, present, deep=deep)
+        try:
+            for unit in iter_units(root, [clip]):
+                problems += check_unit(root, unit, present, deep=deep)
+        except json.JSONDecodeError:
+            problems += damaged_metadata(loc, clip, present)
     return problems
+
+
+def damaged_metadata(loc, clip: str, present: set[str]) -> list[Problem]:
+    """The clip's ``zarr.json`` files that do not parse (a truncated write, garbage)."""
+    bad = []
+    for key in sorted(k for k in present if k.endswith("zarr.json")):
+        try:
+            json.loads(loc.read_bytes(f"{loc.store_name}/{key}") or b"")
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            bad.append(Problem(Unit("ingest", clip), -1, key.rsplit("/", 1)[0], 0, 0, "damaged metadata", str(exc)))
+    return bad
 
 
 def repair(loc, problems: list[Problem]) -> dict:
@@ -142,6 +159,10 @@ def repair(loc, problems: list[Problem]) -> dict:
     root = open_store(loc, mode="r+")
     by_unit: dict[Unit, set[int]] = {}
     for p in problems:
+        if p.kind == "damaged metadata":  # the group or array cannot be read at all: rebuilt from scratch
+            for key in stored_objects(loc, p.array):
+                loc.remove(f"{loc.store_name}/{key}")
+            continue
         by_unit.setdefault(p.unit, set()).add(p.chunk)
     for unit, chunks in by_unit.items():
         drop_records(root, unit, chunks)

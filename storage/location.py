@@ -127,6 +127,16 @@ class Location:
         else:
             self.fs.pipe_file(p, data)
 
+    def put_file(self, local: str | os.PathLike, rel: str) -> None:
+        """Move (local) or upload (object storage) a finished local file to ``rel``, whole."""
+        p = self.path(rel)
+        if self.is_local:
+            Path(p).parent.mkdir(parents=True, exist_ok=True)
+            shutil.move(str(local), p)
+        else:
+            self.fs.put_file(str(local), p)
+            os.unlink(local)
+
     def create(self, rel: str, data: bytes) -> bool:
         """Create-if-absent; False when the file already exists (someone else made it)."""
         p = self.path(rel)

@@ -132,12 +132,6 @@ def _open_group(loc, mode: str) -> zarr.Group:
                          f"restore it from a backup, or curate into a new --out") from None
 
 
-def metadata_error(loc, exc: Exception) -> StoreError:
-    """A truncated or garbled ``zarr.json`` below the root, as one message."""
-    return StoreError(f"{loc.store_url}: a group or array's zarr.json is damaged ({exc}); run `handedit verify "
-                      f"{loc.url}` to find it, then delete that clip's folder and run `handedit curate` again")
-
-
 def create_or_open_store(where, frames_per_chunk: int, code_version: str) -> zarr.Group:
     """Driver: open the store, creating it on first use. Chunking is fixed at creation.
 

@@ -146,3 +146,18 @@ def test_damaged_root_metadata_is_one_message(run, cluster, capsys):
         open_store(run)
     assert main(["status", str(run)]) == 2
     assert "zarr.json is not valid JSON" in capsys.readouterr().err
+
+
+def test_damaged_group_metadata_is_found_and_rebuilt(run, reference, cluster, capsys):
+    meta = run / "handedit.zarr" / SEGMENT.path / "zarr.json"
+    meta.write_text(meta.read_text()[:30])
+    assert main(["status", str(run)]) == 2
+    err = capsys.readouterr().err
+    assert "zarr.json in the store is damaged" in err and "verify" in err and "Traceback" not in err
+    assert main(["verify", str(run)]) == 1
+    assert f"{SEGMENT.path}/zarr.json: damaged metadata" in capsys.readouterr().out
+    assert main(["verify", str(run), "--repair"]) == 0
+    summary = run_curate(config(run, cluster))
+    assert not summary["errors"] and summary["stages"]["segment"]["ran"] == T // F
+    assert summary["stages"]["harmonize"]["skipped"] == T // F  # recomputed bytes are the same: nothing downstream re-runs
+    assert_same_bytes(run, reference)
