@@ -63,7 +63,7 @@ def build_testset(store: str | Path, bench: str | Path, n_sources: int = 1000, e
     clips = curated_clips(root)
     refuse_holes(store, clips, "bench build")
     with staged_dir(bench) as tmp:  # the folder appears only once complete
-        return _build(root, store, clips, BenchDir(tmp), n_sources, embodiments, bank, seed, tracks)
+        return _build(StoreItems(root, clips), store, BenchDir(tmp), n_sources, embodiments, bank, seed, tracks)
 
 
 def refuse_holes(store, clips, command: str) -> None:
@@ -79,9 +79,88 @@ def refuse_holes(store, clips, command: str) -> None:
                          f"run `handedit verify {loc.url} --repair`, then `handedit curate` again, before publishing")
 
 
-def _build(root, store, clips, out: BenchDir, n_sources, embodiments, bank, seed, tracks) -> dict:
-    stored_embs = {e: {"scope": get_embodiment(e).track} for c in clips
-                   for e in (root[f"clips/{c}/embodiments"].group_keys() if f"clips/{c}/embodiments" in root else [])}
+class StoreItems:
+    """Test-set inputs from a curated store."""
+
+    def __init__(self, root, clips):
+        self.root, self.clips = root, clips
+        self.embodiments = {e: get_embodiment(e).track for c in clips
+                            for e in (root[f"clips/{c}/embodiments"].group_keys() if f"clips/{c}/embodiments" in root else [])}
+
+    def kept(self, clip: str, emb: str) -> np.ndarray | None:
+        return _kept(self.root, clip, emb)
+
+    def item(self, clip: str, emb: str, frame: int, scope: str):
+        """(src, gt, human mask, robot mask, object mask or None) of one kept pair."""
+        root = self.root
+        src_grp = root[Unit("ingest", clip).path]
+        humans = read_array(root[Unit("segment", clip).path][SCOPE_MASK[scope]], frame)  # (S,H,W) per hand
+        obj = read_array(src_grp["object_mask"], frame) if "object_mask" in src_grp else None
+        gt = read_array(root[Unit("harmonize", clip, embodiment=emb).path]["image"], frame)
+        robots = read_array(root[Unit("composite", clip, embodiment=emb).path]["robot_mask"], frame)
+        replaced = _replaced(root, clip, emb, frame)
+        return read_array(src_grp["frames"], frame), gt, humans[replaced].any(0), robots[replaced].any(0), obj
+
+
+class ReleaseItems:
+    """Test-set inputs from a published release: its pairs table and its shards."""
+
+    def __init__(self, release: str):
+        from handedit.storage import Location
+        from handedit.storage.releases import read_pairs
+
+        base, _, version = str(release).rstrip("/").rpartition("/")
+        self.loc, self.version = Location(base or "."), version
+        self.pairs = read_pairs(self.loc, version)
+        self.clips = sorted(set(self.pairs["clip"]))
+        self.embodiments = dict(zip(self.pairs["embodiment"], self.pairs["track"]))
+        self._tars: dict = {}
+
+    def kept(self, clip: str, emb: str) -> np.ndarray | None:
+        rows = self.pairs[(self.pairs["clip"] == clip) & (self.pairs["embodiment"] == emb)]
+        if not len(rows):
+            return None
+        k = np.zeros(int(rows["frame"].max()) + 1, bool)
+        k[rows["frame"].to_numpy()] = True
+        return k
+
+    def item(self, clip: str, emb: str, frame: int, scope: str):
+        import io
+        import json
+        import tarfile
+
+        from handedit.release.samples import Pair
+
+        row = self.pairs[(self.pairs["clip"] == clip) & (self.pairs["embodiment"] == emb) & (self.pairs["frame"] == frame)].iloc[0]
+        shard = row["shard"]
+        if shard not in self._tars:
+            self._tars[shard] = tarfile.open(fileobj=io.BytesIO(self.loc.read_bytes(f"shards/{shard}.tar")))
+        tar = self._tars[shard]
+        key = Pair(clip, emb, frame, (), "", "", "", "", "", "").key
+
+        def member(name: str) -> bytes:
+            return tar.extractfile(f"{key}.{name}").read()
+
+        rgb = [decode_image(member(n), f"{key}.{n}") for n in ("src.png", "gt.png")]
+        masks = [decode_image(member(n), f"{key}.{n}")[..., 0] > 127 for n in ("human_mask.png", "robot_mask.png",
+                                                                                 "object_mask.png")]
+        has_obj = json.loads(member("json")).get("has_object")
+        return rgb[0], rgb[1], masks[0], masks[1], masks[2] if has_obj else None
+
+
+def build_testset_from_release(release: str | Path, bench: str | Path, n_sources: int = 1000,
+                               embodiments: list[str] | None = None, bank: str | Path | None = None, seed: int = 0,
+                               tracks: tuple[str, ...] = ("hand", "hand_arm")) -> dict:
+    """The same test set, from a published release (``<releases>/<version>``) instead of a store."""
+    from handedit.storage.location import staged_dir
+
+    items = ReleaseItems(str(release))
+    with staged_dir(bench) as tmp:
+        return _build(items, str(release), BenchDir(tmp), n_sources, embodiments, bank, seed, tracks)
+
+
+def _build(source, store, out: BenchDir, n_sources, embodiments, bank, seed, tracks) -> dict:
+    stored_embs = source.embodiments
     wanted = embodiments or sorted(stored_embs)
     unknown = [e for e in wanted if e not in stored_embs]
     if unknown:
@@ -89,24 +168,17 @@ def _build(root, store, clips, out: BenchDir, n_sources, embodiments, bank, seed
     refs = _write_refs(out, wanted, bank)
     items: list[TestItem] = []
     for scope in tracks:
-        embs = [e for e in wanted if stored_embs[e].get("scope") == scope]
+        embs = [e for e in wanted if stored_embs[e] == scope]
         if not embs:
             continue
-        kept = {c: {e: k for e in embs if (k := _kept(root, c, e)) is not None} for c in clips}
+        kept = {c: {e: k for e in embs if (k := source.kept(c, e)) is not None} for c in source.clips}
         for sf in select_frames(kept, n_sources, seed):
-            src_grp = root[Unit("ingest", sf.clip).path]
-            src = read_array(src_grp["frames"], sf.frame)
-            humans = read_array(root[Unit("segment", sf.clip).path][SCOPE_MASK[scope]], sf.frame)  # (S,H,W) per hand
-            obj = read_array(src_grp["object_mask"], sf.frame) if "object_mask" in src_grp else None
             for emb in embs:
                 if not kept[sf.clip].get(emb, np.zeros(0, bool))[sf.frame:sf.frame + 1].any():
                     continue
                 e = get_embodiment(emb)
                 iid = item_id(scope, sf.clip, sf.frame, emb)
-                gt = read_array(root[Unit("harmonize", sf.clip, embodiment=emb).path]["image"], sf.frame)
-                robots = read_array(root[Unit("composite", sf.clip, embodiment=emb).path]["robot_mask"], sf.frame)
-                replaced = _replaced(root, sf.clip, emb, sf.frame)
-                human, robot = humans[replaced].any(0), robots[replaced].any(0)
+                src, gt, human, robot, obj = source.item(sf.clip, emb, sf.frame, scope)
                 write_image(out.item_file(iid, "src"), src)
                 write_image(out.item_file(iid, "gt"), gt)
                 write_image(out.item_file(iid, "human_mask"), human)

@@ -26,9 +26,17 @@ def cmd_build(args: argparse.Namespace) -> int:
     from handedit.flows.benchmark import build_testset
     from handedit.storage import StoreError
 
+    if bool(args.store) == bool(args.release):
+        print("handedit bench build: give --store RUN or --release RELEASES/VERSION", file=sys.stderr)
+        return 2
     try:
-        meta = build_testset(args.store, args.out, args.n, args.embodiment, args.bank, args.seed)
-    except (StoreError, ValueError) as exc:
+        if args.release:
+            from handedit.flows.benchmark import build_testset_from_release
+
+            meta = build_testset_from_release(args.release, args.out, args.n, args.embodiment, args.bank, args.seed)
+        else:
+            meta = build_testset(args.store, args.out, args.n, args.embodiment, args.bank, args.seed)
+    except (StoreError, ValueError, FileNotFoundError) as exc:
         print(f"handedit bench build: {exc}", file=sys.stderr)
         return 2
     for scope, embs in ((s, e) for s, e in meta["tracks"].items() if e):
@@ -134,7 +142,8 @@ def register(subparsers) -> None:
     sub = p.add_subparsers(dest="bench_cmd", required=True)
 
     b = sub.add_parser("build", help="test set (two tracks) + toolkit manifest from a curated store")
-    b.add_argument("--store", required=True)
+    b.add_argument("--store", help="a curated run")
+    b.add_argument("--release", help="a published release instead, e.g. runs/releases/v0002")
     b.add_argument("--out", required=True, help="benchmark folder")
     b.add_argument("--bank", help="reference bank (handedit bank build)")
     b.add_argument("-n", type=int, default=1000, help="source images per track")

@@ -1,0 +1,224 @@
+"""The ``release`` flow: publish an immutable, versioned release of every kept pair.
+
+    plan     (driver)  from each curated run: its clips in curate-shard order, every kept
+                       frame x embodiment as a pair with its content key (from the chunk
+                       records' digests, no pixels read), cut into shards at clip boundaries
+    shards   (tasks)   one ``write-release-shard`` task per shard whose key the parent
+                       release does not already hold, on the Dask cluster
+    publish  (driver)  pairs.parquet, changelog, datasheet, then manifest.json, created
+                       only if absent: the version becomes visible at once and only whole
+
+Before reading anything it runs the presence check of ``handedit verify`` on every
+source and refuses to publish a hole. See ``handedit.release`` for the sample format and
+``handedit.storage.releases`` for the layout.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import pandas as pd
+from prefect import flow, get_run_logger
+from pydantic import BaseModel, ConfigDict, Field
+
+from handedit.embodiments import get_embodiment
+from handedit.flows.config import ClusterConfig
+from handedit.reasons import Reason
+from handedit.release import datasheet
+from handedit.release.samples import Pair, TARGET_SHARD_BYTES, changelog, content_key, cut_parts, pairs_per_shard, shard_key
+from handedit.storage import Location, StoreError, Unit, open_store, read_records
+from handedit.storage.ledger import read_ledger, status_counts, unit_sides
+from handedit.storage.releases import RELEASE_SCHEMA, latest, next_version, publish, read_pairs, read_release
+from handedit.storage.store import jsonable, now_iso, read_array
+from handedit.storage.summary import curated_clips
+
+READS = ("ingest", "segment")  # clip units a pair reads; plus its embodiment's composite, harmonize, qc
+
+
+class ReleaseConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    sources: list[str] = Field(description="curated runs (folders or URLs) whose kept pairs the release holds")
+    out: str = Field(description="the releases folder or URL (versions v0001, v0002, ... and shards/)")
+    embodiments: list[str] = Field(default_factory=list, description="only these (default: every curated one)")
+    target_shard_bytes: int = Field(TARGET_SHARD_BYTES, gt=0, description="~size of one WebDataset shard")
+    cluster: ClusterConfig = ClusterConfig()
+
+
+def _digests(records: dict, chunk: int) -> list[str]:
+    rec = records.get(chunk)
+    return sorted(rec.outputs.values()) if rec is not None else []
+
+
+def plan_pairs(store: str, embodiments: list[str], target_bytes: int) -> tuple[list[Pair], dict]:
+    """Every kept pair of one curated run, each with its shard part (see module doc)."""
+    from handedit.benchmark.testset import instruction
+    from handedit.storage.shards import read_manifest, shard_ids
+
+    loc = Location(store)
+    root = open_store(loc)
+    clips = curated_clips(root)
+    f = int(root.attrs["frames_per_chunk"])
+    order = [c for s in shard_ids(loc) for c in (read_manifest(loc, s) or {}).get("clips", []) if c in set(clips)]
+    group_of = {c: s for s in shard_ids(loc) for c in (read_manifest(loc, s) or {}).get("clips", [])}
+    order += [c for c in clips if c not in set(order)]
+    pairs: list[Pair] = []
+    fingerprints, stages = {}, {}
+    for clip in order:
+        src_unit = Unit("ingest", clip)
+        info = dict(root[src_unit.path].attrs.get("info") or {})
+        meta = info.get("meta") or {}
+        fingerprints[clip] = info.get("fingerprint", "")
+        clip_records = {u: read_records(root, Unit(u, clip)) for u in READS}
+        embs = root[f"clips/{clip}/embodiments"].group_keys() if f"clips/{clip}/embodiments" in root else []
+        for emb in sorted(e for e in embs if not embodiments or e in embodiments):
+            qc_unit = Unit("qc", clip, embodiment=emb)
+            if qc_unit.path not in root:
+                continue
+            for stage in ("ingest", "segment", "retarget", "render", "composite", "harmonize", "qc"):
+                u = Unit(stage, clip, embodiment=emb) if stage not in READS else Unit(stage, clip)
+                attrs = root[u.path].attrs if u.path in root else {}
+                stages.setdefault(stage, {"version": attrs.get("version"), "params": attrs.get("params")})
+            e = get_embodiment(emb)
+            text = instruction(e.track, e.name, e.description)
+            reference = f"{emb}:bank-view-0"
+            status = read_array(root[qc_unit.path]["status"])
+            hs = read_array(root[qc_unit.path]["hand_status"]) if "hand_status" in root[qc_unit.path] else None
+            sides = unit_sides(root, qc_unit)
+            emb_records = {s: read_records(root, Unit(s, clip, embodiment=emb)) for s in ("composite", "harmonize", "qc")}
+            part = f"{group_of.get(clip, 'clips')}/{emb}"
+            for t in map(int, (status == Reason.OK).nonzero()[0]):
+                replaced = tuple(s for k, s in enumerate(sides) if hs is None or hs[t, k] == Reason.OK)
+                digests = [d for recs in (*clip_records.values(), *emb_records.values()) for d in _digests(recs, t // f)]
+                pairs.append(Pair(clip, emb, t, replaced, e.track, str(meta.get("dataset", "")),
+                                  str(meta.get("task") or meta.get("task_folder") or ""), text, reference,
+                                  content_key(t, replaced, digests, text, reference), part))
+    # cut each (curate shard, embodiment) group into parts of whole clips, by frame count
+    n_frames = {c: int(root[Unit("ingest", c).path]["status"].shape[0]) for c in order}
+    hw = root[Unit("ingest", order[0]).path]["frames"].shape[1:3] if order else (1, 1)
+    per_part = pairs_per_shard(int(hw[0]), int(hw[1]), target_bytes)
+    out = []
+    for group in dict.fromkeys(p.part for p in pairs):
+        members = [p for p in pairs if p.part == group]
+        cut = cut_parts([(c, n_frames[c]) for c in dict.fromkeys(p.clip for p in members)], per_part)
+        out += [Pair(**{**p.__dict__, "part": f"{group}/{cut[p.clip]:04d}"}) for p in members]
+    source = {"store": loc.store_url, "clips": len(order), "stages": stages,
+              "fingerprint": _hash(json.dumps(fingerprints, sort_keys=True)), "frames_per_chunk": f,
+              "pairs_per_shard": per_part}
+    return out, source
+
+
+def _hash(text: str) -> str:
+    import hashlib
+
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+@flow(name="release")
+def release(cfg: ReleaseConfig) -> dict:
+    from prefect_dask import DaskTaskRunner
+
+    from handedit.flows.benchmark import refuse_holes
+    from handedit.flows.curate import code_version
+    from handedit.tasks.release import ShardJob
+
+    logger = get_run_logger()
+    t0 = time.time()
+    loc = Location(cfg.out)
+    parent = latest(loc)
+    parent_manifest = read_release(loc, parent) if parent else None
+    parent_pairs = read_pairs(loc, parent) if parent else None
+    reusable = {s["key"]: s for s in (parent_manifest or {}).get("shards", [])}
+    pairs, sources, jobs = [], [], []
+    for store in cfg.sources:
+        root = open_store(store)
+        refuse_holes(store, curated_clips(root), "release")
+        got, source = plan_pairs(store, cfg.embodiments, cfg.target_shard_bytes)
+        sources.append(source)
+        for part in dict.fromkeys(p.part for p in got):
+            members = [p for p in got if p.part == part]
+            key = shard_key(members)
+            pairs += [(p, key) for p in members]
+            if key not in reusable:
+                jobs.append(ShardJob(cfg.out, Location(store).store_url, key, tuple(p.meta() for p in members)))
+    shards = {k: {**s, "reused": True} for k, s in reusable.items()}
+    if jobs:
+        with cfg.cluster.connect() as address:
+            for res in write_shards.with_options(task_runner=DaskTaskRunner(address=address))(jobs):
+                shards[res["key"]] = {k: res[k] for k in ("key", "path", "sha256", "bytes", "pairs")} | {"reused": False}
+    used = list(dict.fromkeys(k for _, k in pairs))
+    table = pd.DataFrame([{**p.meta(), "id": p.id, "sides": ",".join(p.sides), "shard": k} for p, k in pairs],
+                         columns=["id", "clip", "embodiment", "frame", "sides", "track", "dataset", "task", "instruction",
+                                  "reference", "content", "shard"])
+    version = next_version(loc)
+    changes = changelog(parent_pairs, table)
+    sheet = datasheet.build(table, _status(cfg.sources), _ledger(cfg.sources),
+                            sorted(set(table["embodiment"])) if len(table) else [])
+    _write_table(loc, f"{version}/pairs.parquet", table)
+    loc.write_json(f"{version}/changelog.json", {"parent": parent, **changes})
+    loc.write_bytes(f"{version}/changelog.md", _changelog_md(version, parent, changes).encode())
+    loc.write_json(f"{version}/datasheet.json", sheet)
+    loc.write_bytes(f"{version}/datasheet.md", datasheet.markdown(sheet, f"handedit release {version}").encode())
+    manifest = jsonable({
+        "schema": RELEASE_SCHEMA, "version": version, "parent": parent, "created": now_iso(), "code_version": code_version(),
+        "sources": sources, "counts": {"pairs": len(table), "shards": len(used), "shards_reused": sum(
+            1 for k in used if shards[k]["reused"]), "added": len(changes["added"]), "removed": len(changes["removed"]),
+            "changed": len(changes["changed"])},
+        "shards": [{k: shards[key][k] for k in ("key", "path", "sha256", "bytes", "pairs")} | {"reused": shards[key]["reused"]}
+                   for key in used],
+    })
+    if not publish(loc, version, manifest):
+        raise StoreError(f"another release published {version} of {cfg.out} while this one ran; run `handedit release` "
+                         f"again to publish the next version")
+    logger.info("published %s: %d pairs in %d shards (%d reused) in %.0f s", version, len(table), len(used),
+                manifest["counts"]["shards_reused"], time.time() - t0)
+    return manifest
+
+
+@flow(name="release-shards")
+def write_shards(jobs: list) -> list[dict]:
+    """One task per new shard on the run's Dask cluster; a shard that fails after its
+    retries fails the release (nothing is published)."""
+    from handedit.tasks.release import write_release_shard
+
+    return [f.result() for f in [write_release_shard.submit(j) for j in jobs]]
+
+
+def _status(stores: list[str]) -> pd.DataFrame:
+    frames = []
+    for store in stores:
+        root = open_store(store)
+        frames.append(status_counts(root, clips=curated_clips(root)))
+    df = pd.concat(frames, ignore_index=True)
+    return df.groupby(["stage", "status"], sort=False, as_index=False)["frames"].sum()
+
+
+def _ledger(stores: list[str]) -> pd.DataFrame:
+    return pd.concat([read_ledger(open_store(s)) for s in stores], ignore_index=True)
+
+
+def _write_table(loc: Location, rel: str, frame: pd.DataFrame) -> None:
+    loc.write_table(rel, frame)
+
+
+def _changelog_md(version: str, parent: str | None, changes: dict) -> str:
+    out = [f"# {version} against {parent or '(no parent: first release)'}", ""]
+    for kind in ("added", "removed", "changed"):
+        ids = changes[kind]
+        out += [f"## {kind}: {len(ids)}", ""] + [f"- {i}" for i in ids[:1000]]
+        if len(ids) > 1000:
+            out.append(f"- ... {len(ids) - 1000} more (changelog.json)")
+        out.append("")
+    return "\n".join(out)
+
+
+def run_release(cfg: ReleaseConfig) -> dict:
+    from handedit.flows.api import run_api
+
+    with run_api():
+        return release(cfg)
+
+
+__all__ = ["ReleaseConfig", "release", "run_release", "plan_pairs"]

@@ -1,0 +1,81 @@
+"""The one owner of the release layout: versions, content-keyed shards, publishing.
+
+    <releases>/                              a local folder or an object-store prefix
+      shards/<key>.tar                       WebDataset shards, named by the content key of the
+                                             pairs they hold; shared by every release, never rewritten
+      v0001/pairs.parquet                    every pair of the release with its metadata and shard
+      v0001/changelog.json, changelog.md     added / removed / changed pairs against the parent
+      v0001/datasheet.json, datasheet.md     counts, kept rates, rejection breakdown
+      v0001/manifest.json                    written last: its existence publishes v0001
+
+Publishing is one create-if-absent write of ``manifest.json`` (``O_EXCL`` locally, a
+conditional PUT on S3), so an interrupted release leaves no visible version, two
+concurrent releases cannot both publish the same number, and a published manifest is
+never overwritten. Files of an unpublished attempt are rewritten by the next attempt.
+A release reuses a parent's shard by key: nothing is copied or rewritten.
+"""
+
+from __future__ import annotations
+
+import re
+
+from handedit.storage.location import Location
+
+RELEASE_SCHEMA = 1
+SHARDS_DIR = "shards"
+_VERSION = re.compile(r"^v(\d{4,})$")
+
+
+def version_name(n: int) -> str:
+    return f"v{n:04d}"
+
+
+def shard_rel(key: str) -> str:
+    return f"{SHARDS_DIR}/{key}.tar"
+
+
+def versions(loc: Location) -> list[str]:
+    """Published versions, oldest first (a folder without its manifest is not published)."""
+    names = [n for n in loc.listdir("") if _VERSION.match(n)]
+    return sorted((n for n in names if loc.exists(f"{n}/manifest.json")), key=lambda n: int(n[1:]))
+
+
+def latest(loc: Location) -> str | None:
+    v = versions(loc)
+    return v[-1] if v else None
+
+
+def next_version(loc: Location) -> str:
+    last = latest(loc)
+    return version_name(int(last[1:]) + 1 if last else 1)
+
+
+def read_release(loc: Location, version: str) -> dict:
+    manifest = loc.read_json(f"{version}/manifest.json")
+    if manifest is None:
+        raise FileNotFoundError(f"{loc.path(version)} is not a published release (no manifest.json); "
+                                f"published: {', '.join(versions(loc)) or 'none'}")
+    return manifest
+
+
+def read_pairs(loc: Location, version: str):
+    import io
+
+    import pandas as pd
+
+    data = loc.read_bytes(f"{version}/pairs.parquet")
+    if data is None:
+        raise FileNotFoundError(f"{loc.path(version, 'pairs.parquet')} is missing")
+    return pd.read_parquet(io.BytesIO(data))
+
+
+def publish(loc: Location, version: str, manifest: dict) -> bool:
+    """Make ``version`` visible; False when another release published that number first."""
+    return loc.create_json(f"{version}/manifest.json", manifest)
+
+
+def shard_urls(loc: Location, version: str) -> list[str]:
+    """The release's shard files as paths or URLs (what ``webdataset`` / ``datasets`` take)."""
+    manifest = read_release(loc, version)
+    return [loc.path(s["path"]) if loc.is_local else f"{loc.protocol}://{loc.path(s['path'])}"
+            for s in manifest["shards"]]

@@ -1,0 +1,132 @@
+"""Releases: v1 from a curated run, v2 after a clip was added reuses v1's shards by
+content and lists exactly the new pairs; both load with ``webdataset`` and ``datasets``."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+
+import pytest
+
+from handedit.flows.cli import main
+from handedit.flows.config import ClusterConfig, CurateConfig
+from handedit.flows.curate import run_curate
+from handedit.sources.synthetic import make_clip_specs
+from handedit.storage import Location, StoreError, open_store
+from handedit.storage.releases import read_pairs, read_release, shard_urls, versions
+from handedit.storage.summary import read_index
+
+W, H, T, F = 96, 72, 16, 8
+SHARD_MB = "0.5"  # ~16 frames of 96x72 pairs: one clip per shard here
+
+
+def curate(out, n: int, cluster) -> None:
+    summary = run_curate(CurateConfig(out=str(out), clips=make_clip_specs(n, seed=11, n_frames=T, width=W, height=H),
+                                      embodiments=["allegro"], frames_per_chunk=F, shard_size=1,
+                                      cluster=ClusterConfig(address=cluster.scheduler_address)))
+    assert not summary["errors"]
+
+
+def kept(run) -> int:
+    return int(read_index(Location(run))["kept"].sum())
+
+
+def sha256(path) -> str:
+    return hashlib.sha256(open(path, "rb").read()).hexdigest()
+
+
+@pytest.fixture(scope="module")
+def released(tmp_path_factory, prefect_api, dask_cluster):
+    tmp = tmp_path_factory.mktemp("release")
+    run, rel = tmp / "run", tmp / "releases"
+    curate(run, 2, dask_cluster)
+    argv = ["release", "--from", str(run), "--out", str(rel), "--shard-mb", SHARD_MB,
+            "--address", dask_cluster.scheduler_address]
+    assert main(argv) == 0
+    v1 = {f.name: sha256(f) for f in (rel / "shards").glob("*.tar")}
+    n1 = kept(run)
+    curate(run, 3, dask_cluster)  # one clip more: a new curate shard
+    assert main(argv) == 0
+    return {"run": run, "rel": rel, "v1_files": v1, "n1": n1, "tmp": tmp, "cluster": dask_cluster}
+
+
+def test_v1_holds_every_kept_pair_with_hashed_shards(released):
+    loc = Location(released["rel"])
+    m = read_release(loc, "v0001")
+    assert m["version"] == "v0001" and m["parent"] is None
+    assert m["counts"]["pairs"] == released["n1"] > 0 and m["counts"]["shards"] == 2 == len(released["v1_files"])
+    for s in m["shards"]:
+        assert sha256(released["rel"] / s["path"]) == s["sha256"] and not s["reused"]
+    stages = m["sources"][0]["stages"]
+    assert stages["harmonize"]["version"] is not None and "code_version" in m and m["sources"][0]["fingerprint"]
+    sheet = json.loads((released["rel"] / "v0001" / "datasheet.json").read_text())
+    assert sheet["pairs"] == released["n1"] and sheet["counts"]["embodiment"] == {"allegro": released["n1"]}
+    md = (released["rel"] / "v0001" / "datasheet.md").read_text()
+    assert "Rejections by primary cause" in md and "| Primary failure cause |" in md
+
+
+def test_v2_reuses_unchanged_shards_and_lists_exactly_the_new_pairs(released):
+    loc = Location(released["rel"])
+    assert versions(loc) == ["v0001", "v0002"]
+    m1, m2 = read_release(loc, "v0001"), read_release(loc, "v0002")
+    assert m2["parent"] == "v0001" and m2["counts"]["shards"] == 3 and m2["counts"]["shards_reused"] == 2
+    assert {s["sha256"] for s in m1["shards"]} < {s["sha256"] for s in m2["shards"]}
+    for name, digest in released["v1_files"].items():  # v1's files untouched
+        assert sha256(released["rel"] / "shards" / name) == digest
+    log = json.loads((released["rel"] / "v0002" / "changelog.json").read_text())
+    new = read_pairs(loc, "v0002")
+    assert log["removed"] == [] and log["changed"] == []
+    assert sorted(log["added"]) == sorted(new.loc[new["clip"] == "synthetic-0002", "id"]) and log["added"]
+    assert len(new) == kept(released["run"])
+
+
+def test_both_releases_load_with_webdataset_and_datasets(released, monkeypatch):
+    import datasets
+    import webdataset as wds
+
+    loc = Location(released["rel"])
+    for version in ("v0001", "v0002"):
+        urls = shard_urls(loc, version)
+        n = read_release(loc, version)["counts"]["pairs"]
+        samples = list(wds.WebDataset(urls, shardshuffle=False, empty_check=False))
+        assert len(samples) == n
+        s = samples[0]
+        assert {"src.png", "gt.png", "composite.png", "human_mask.png", "robot_mask.png", "object_mask.png", "json"} <= set(s)
+        meta = json.loads(s["json"])
+        assert meta["embodiment"] == "allegro" and meta["instruction"].startswith("Replace the human hand region")
+        monkeypatch.setenv("HF_DATASETS_OFFLINE", "1")
+        monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+        ds = datasets.load_dataset("webdataset", data_files={"train": urls}, split="train",
+                                   cache_dir=str(released["tmp"] / f"hf-{version}"))
+        assert len(ds) == n and ds[0]["gt.png"].size == (W, H)
+
+
+def test_a_release_with_a_hole_publishes_nothing(released, capsys):
+    run = released["tmp"] / "holed"
+    shutil.copytree(released["run"], run)
+    image = next((run / "handedit.zarr" / "clips" / "synthetic-0000" / "embodiments" / "allegro" / "harmonize" / "image"
+                  / "c").rglob("*"))
+    while image.is_dir():
+        image = next(image.iterdir())
+    image.unlink()
+    rel = released["tmp"] / "releases-holed"
+    argv = ["release", "--from", str(run), "--out", str(rel), "--address", released["cluster"].scheduler_address]
+    assert main(argv) == 2
+    assert "missing" in capsys.readouterr().err
+    assert versions(Location(rel)) == []
+
+
+def test_bench_build_from_a_release_equals_the_store_build(released, capsys):
+    from handedit.storage.benchmark import read_image
+
+    a, b = released["tmp"] / "bench-store", released["tmp"] / "bench-release"
+    assert main(["bench", "build", "--store", str(released["run"]), "--out", str(a), "-n", "4"]) == 0
+    assert main(["bench", "build", "--release", str(released["rel"] / "v0002"), "--out", str(b), "-n", "4"]) == 0
+    ma, mb = (json.loads((d / "testset.json").read_text())["items"] for d in (a, b))
+    assert [i["id"] for i in ma] == [i["id"] for i in mb] and len(ma) >= 4
+    for item in ma:
+        for f in ("src.png", "gt.png", "human_mask.png", "robot_mask.png"):
+            fa = next(p for p in a.rglob(f) if item["id"] in str(p))
+            fb = next(p for p in b.rglob(f) if item["id"] in str(p))
+            assert (read_image(fa) == read_image(fb)).all(), (item["id"], f)
