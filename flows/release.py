@@ -214,6 +214,37 @@ def _changelog_md(version: str, parent: str | None, changes: dict) -> str:
     return "\n".join(out)
 
 
+@flow(name="release-from-config", log_prints=True)
+def release_from_config(sources: list[str], out: str, cluster_path: str | None = None, shard_mb: float = 1024.0) -> dict:
+    """Deployment entry point: publish the next release of curated runs ``sources``."""
+    return release(ReleaseConfig(sources=sources, out=out, target_shard_bytes=int(shard_mb * (1 << 20)),
+                                 cluster=_cluster(cluster_path)))
+
+
+@flow(name="curate-and-release", log_prints=True)
+def curate_and_release(config_path: str, releases: str, cluster_path: str | None = None, out: str | None = None,
+                       shard_mb: float = 1024.0) -> dict:
+    """The scheduled incremental release: curate the config's sources (only new or changed
+    chunks cost compute), then publish the next version (only changed shards are written)."""
+    from handedit.flows.curate import curate, load_config
+
+    config = load_config(config_path, cluster_path, out)
+    summary = curate(config)
+    manifest = release(ReleaseConfig(sources=[config.out], out=releases, target_shard_bytes=int(shard_mb * (1 << 20)),
+                                     cluster=config.cluster))
+    print(f"curated: {summary['shards']}; published {manifest['version']}: {manifest['counts']}")
+    return {"curate": {k: summary[k] for k in ("shards", "stages", "errors")}, "release": manifest}
+
+
+def _cluster(path: str | None) -> ClusterConfig:
+    if not path:
+        return ClusterConfig()
+    import yaml
+
+    spec = yaml.safe_load(Path(path).read_text()) or {}
+    return ClusterConfig.model_validate(spec.get("cluster", spec))
+
+
 def run_release(cfg: ReleaseConfig) -> dict:
     from handedit.flows.api import run_api
 
@@ -221,4 +252,4 @@ def run_release(cfg: ReleaseConfig) -> dict:
         return release(cfg)
 
 
-__all__ = ["ReleaseConfig", "release", "run_release", "plan_pairs"]
+__all__ = ["ReleaseConfig", "release", "run_release", "plan_pairs", "release_from_config", "curate_and_release"]

@@ -22,9 +22,12 @@ def test_deployment_entrypoint_and_parameters(deployment, monkeypatch):
     flow = load_flow_from_entrypoint(deployment["entrypoint"])
     params = inspect.signature(flow.fn).parameters
     assert set(deployment["parameters"]) <= set(params)
-    config = load_config(deployment["parameters"]["config_path"], deployment["parameters"].get("cluster_path"))
-    assert config.clips and config.embodiments
-    assert config.cluster.threads_per_worker == 1
+    required = {n for n, p in params.items() if p.default is inspect.Parameter.empty}
+    assert required <= set(deployment["parameters"])
+    if "config_path" in deployment["parameters"]:
+        config = load_config(deployment["parameters"]["config_path"], deployment["parameters"].get("cluster_path"))
+        assert config.clips and config.embodiments
+        assert config.cluster.threads_per_worker == 1
     for schedule in deployment.get("schedules", []):
         assert len(schedule["cron"].split()) == 5
 

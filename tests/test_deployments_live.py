@@ -1,0 +1,167 @@
+"""deploy/prefect.yaml on a real Prefect server: `prefect deploy`, a process worker,
+`prefect deployment run` of the release deployment, and the scheduled incremental release
+picking up a clip added to its source.
+
+The server, the work pool, the worker and every flow run are real processes on
+127.0.0.1 (not the test harness); the project's deployments are used as written, with
+their parameters pointed at this test's folders and the nightly schedule shortened.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+
+import httpx
+import yaml
+
+from handedit.storage import Location
+from handedit.storage.releases import read_pairs, read_release, versions
+
+REPO = Path(__file__).resolve().parents[1]
+PREFECT = [sys.executable, "-m", "prefect"]
+POOL = "handedit-test"
+
+
+def _port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _clip(i: int) -> dict:
+    return {"kind": "synthetic", "clip_id": f"synthetic-{i:04d}", "seed": i, "n_frames": 8, "width": 96, "height": 72}
+
+
+class Server:
+    def __init__(self, tmp: Path):
+        self.port = _port()
+        self.api = f"http://127.0.0.1:{self.port}/api"
+        self.env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")} | {
+            "PREFECT_HOME": str(tmp / "prefect-home"), "PREFECT_API_URL": self.api,
+            "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "PREFECT_UI_ENABLED": "false",
+            "PREFECT_SERVER_SERVICES_SCHEDULER_LOOP_SECONDS": "5", "PREFECT_WORKER_QUERY_SECONDS": "2",
+            "PREFECT_LOGGING_LEVEL": "WARNING", "HANDEDIT_REPO": str(REPO), "PYOPENGL_PLATFORM": "egl"}
+        self.procs: list[subprocess.Popen] = []
+        self.log = open(tmp / "server.log", "w")
+
+    def spawn(self, args, **kw) -> subprocess.Popen:
+        p = subprocess.Popen(args, env=self.env, stdout=self.log, stderr=subprocess.STDOUT, start_new_session=True, **kw)
+        self.procs.append(p)
+        return p
+
+    def run(self, args, timeout=300, **kw) -> str:
+        out = subprocess.run(args, env=self.env, capture_output=True, text=True, timeout=timeout, **kw)
+        assert out.returncode == 0, f"{args}: {out.stdout[-2000:]}{out.stderr[-2000:]}"
+        return out.stdout
+
+    def start(self) -> None:
+        self.spawn([*PREFECT, "server", "start", "--host", "127.0.0.1", "--port", str(self.port)])
+        deadline = time.time() + 240
+        while time.time() < deadline:
+            try:
+                if httpx.get(f"{self.api}/health", timeout=2).status_code == 200:
+                    return
+            except httpx.HTTPError:
+                pass
+            time.sleep(1)
+        raise AssertionError("the Prefect server did not start")
+
+    def runs(self, deployment: str) -> list[dict]:
+        deps = httpx.post(f"{self.api}/deployments/filter", json={"deployments": {"name": {"any_": [deployment]}}}).json()
+        ids = [d["id"] for d in deps]
+        return httpx.post(f"{self.api}/flow_runs/filter", json={"flow_runs": {"deployment_id": {"any_": ids}}}).json()
+
+    def wait(self, what, timeout=420) -> dict:
+        deadline = time.time() + timeout
+        while time.time() < deadline:
+            found = what()
+            if found:
+                return found
+            time.sleep(2)
+        raise AssertionError(f"timed out waiting; server log:\n{Path(self.log.name).read_text()[-3000:]}")
+
+    def stop(self) -> None:
+        for p in reversed(self.procs):
+            try:
+                os.killpg(p.pid, signal.SIGTERM)
+            except ProcessLookupError:
+                pass
+        for p in self.procs:
+            try:
+                p.wait(30)
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)
+
+
+def test_deploy_run_and_scheduled_incremental_release(tmp_path):
+    run, releases = tmp_path / "run" / "handedit.zarr", tmp_path / "releases"
+    config = tmp_path / "run.yaml"
+    config.write_text(yaml.safe_dump({"out": str(run), "frames_per_chunk": 8, "shard_size": 1,
+                                      "embodiments": ["allegro"], "clips": [_clip(0), _clip(1)]}))
+    cluster = tmp_path / "cluster.yaml"
+    cluster.write_text(yaml.safe_dump({"cluster": {"n_workers": 1, "dashboard_address": "127.0.0.1:0"}}))
+    spec = yaml.safe_load((REPO / "deploy" / "prefect.yaml").read_text())
+    by_name = {d["name"]: d for d in spec["deployments"]}
+    assert {"demo", "release", "nightly"} <= set(by_name)
+    for d in spec["deployments"]:
+        d["work_pool"]["name"] = POOL
+        if "config_path" in d["parameters"]:
+            d["parameters"].update(config_path=str(config), cluster_path=str(cluster))
+    by_name["release"]["parameters"].update(sources=[str(run)], out=str(releases), cluster_path=str(cluster),
+                                            shard_mb=0.5)
+    by_name["nightly"]["parameters"].update(releases=str(releases), shard_mb=0.5)
+    anchor = (datetime.now(timezone.utc) + timedelta(seconds=60)).isoformat()
+    by_name["nightly"]["schedules"] = [{"interval": 30, "anchor_date": anchor, "timezone": "UTC"}]
+    project = tmp_path / "prefect.yaml"
+    project.write_text(yaml.safe_dump(spec, sort_keys=False))
+
+    server = Server(tmp_path)
+    try:
+        server.start()
+        server.run([*PREFECT, "work-pool", "create", POOL, "--type", "process"])
+        server.run([*PREFECT, "work-pool", "set-concurrency-limit", POOL, "1"])
+        server.run([sys.executable, "-m", "handedit.flows.cli", "curate", "--config", str(config), "--cluster",
+                    str(cluster), "--no-progress"], timeout=600)
+        server.run([*PREFECT, "--no-prompt", "deploy", "--all", "--prefect-file", str(project)], cwd=REPO)
+        server.spawn([*PREFECT, "worker", "start", "--pool", POOL, "--type", "process"], cwd=REPO)
+
+        # 1. `prefect deployment run` of the release deployment
+        out = server.run([*PREFECT, "deployment", "run", "release-from-config/release"], cwd=REPO)
+        assert "release-from-config/release" in out
+        done = server.wait(lambda: [r for r in server.runs("release") if r["state_type"] in ("COMPLETED", "FAILED", "CRASHED")])
+        assert done[0]["state_type"] == "COMPLETED", done[0]["state"]
+        loc = Location(releases)
+        assert versions(loc) and read_release(loc, versions(loc)[0])["counts"]["pairs"] > 0
+
+        # 2. the server's scheduler creates a run of the nightly deployment, and it completes
+        server.wait(lambda: [r for r in server.runs("nightly") if r["auto_scheduled"] and r["state_type"] == "COMPLETED"])
+
+        # 3. a clip added to the source: the next scheduled release holds exactly its pairs as new
+        edited = datetime.now(timezone.utc)
+        data = yaml.safe_load(config.read_text())
+        data["clips"].append(_clip(2))
+        config.write_text(yaml.safe_dump(data))
+
+        def new_release():
+            for v in versions(loc):
+                m = read_release(loc, v)
+                if datetime.fromisoformat(m["created"]) > edited and m["counts"]["added"]:
+                    return v
+            return None
+
+        v = server.wait(new_release)
+        changes = yaml.safe_load((releases / v / "changelog.json").read_text())
+        pairs = read_pairs(loc, v)
+        assert sorted(changes["added"]) == sorted(pairs.loc[pairs["clip"] == "synthetic-0002", "id"])
+        assert changes["removed"] == [] and changes["changed"] == []
+        m = read_release(loc, v)
+        assert m["counts"]["shards_reused"] == m["counts"]["shards"] - 1  # only the new clip's shard was written
+    finally:
+        server.stop()
