@@ -144,6 +144,7 @@ def cmd_curate(args: argparse.Namespace) -> int:
 def print_summary(summary: dict) -> None:
     print(f"\nstore:          {summary['store']}")
     print(f"dask dashboard: {summary['dashboard'] or '(not available)'}")
+    print(f"prefect run:    {summary.get('prefect_run') or '(no Prefect UI: set PREFECT_API_URL to a server)'}")
     sh = summary.get("shards", {})
     print(f"shards:         {sh.get('ran', 0)} ran, {sh.get('skipped', 0)} complete (skipped), {sh.get('held', 0)} held by "
           f"another driver, {sh.get('incomplete', 0)} left incomplete (re-run to retry)")

@@ -30,6 +30,7 @@ from dataclasses import asdict, dataclass
 from functools import lru_cache
 from pathlib import Path
 
+from distributed import span
 from prefect import flow, get_run_logger
 from tqdm import tqdm
 
@@ -144,11 +145,13 @@ def curate_shard(config_json: str, shard_id: str, specs_json: list[str], embodim
     clip_futures, emb_futures = [], []
     for spec_json in specs_json:
         clip_id = parse_spec(json.loads(spec_json)).id
-        fc = curate_clip.submit(ClipJob(loc.store_url, spec_json, config_json, scopes, code), clip_id=clip_id)
+        with span("curate", "clip"):  # Dask spans: the dashboard groups time per embodiment and stage
+            fc = curate_clip.submit(ClipJob(loc.store_url, spec_json, config_json, scopes, code), clip_id=clip_id)
         clip_futures.append(fc)
         for emb in embodiments:
-            emb_futures.append(curate_embodiment.submit(EmbodimentJob(loc.store_url, clip_id, emb, config_json, code),
-                                                        emb_id=emb["id"], wait_for=[fc]))
+            with span("curate", emb["id"]):
+                emb_futures.append(curate_embodiment.submit(EmbodimentJob(loc.store_url, clip_id, emb, config_json, code),
+                                                            emb_id=emb["id"], wait_for=[fc]))
     stages: dict = {}
     errors, source_errors, task_failures, recovered = [], {}, [], []
     for fut in [*clip_futures, *emb_futures]:
@@ -190,6 +193,16 @@ def curate_shard(config_json: str, shard_id: str, specs_json: list[str], embodim
                                    "embodiments": embodiments, "updated": now_iso(), "run": run_id, "stages": stages,
                                    "objects": {c: count_chunk_objects(loc, c) for c in ok_clips} if complete else {}})
     return log
+
+
+def _prefect_run_url() -> str | None:
+    """The Prefect UI page of this flow run (None without a UI, e.g. a temporary API)."""
+    try:
+        from prefect.runtime import flow_run
+
+        return flow_run.ui_url
+    except Exception:  # noqa: BLE001 - a link, never a reason to fail
+        return None
 
 
 def count_chunk_objects(loc: Location, clip: str) -> int:
@@ -316,9 +329,10 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
     bar = tqdm(desc="curate", unit="shard", disable=not progress)
     with config.cluster.connect() as address:
         summary["dashboard"] = link = _dashboard(address)
-        logger.info("Dask dashboard: %s", link)
+        summary["prefect_run"] = ui = _prefect_run_url()
+        logger.info("Dask dashboard: %s; Prefect run: %s", link, ui)
         if progress:
-            tqdm.write(f"Dask dashboard: {link or '(not available)'}")
+            tqdm.write(f"Dask dashboard: {link or '(not available)'}\nPrefect run:    {ui or '(no UI)'}")
         leases = _Leases(loc, config.claim_lease_s)
         stop, lost = threading.Event(), []
         watchdog = threading.Thread(target=_watch_workers, args=(address, config.cluster.worker_timeout, stop, lost), daemon=True)
