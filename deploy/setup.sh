@@ -16,6 +16,8 @@ for pkg in libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libgomp1; do
 done
 command -v "$PY" >/dev/null 2>&1 || need+=(python3.11)
 "$PY" -m venv --help >/dev/null 2>&1 || need+=(python3.11-venv)
+# the tests open the QA page in headless Chromium
+if [ -n "$extras" ] && ! command -v chromium >/dev/null 2>&1; then need+=(chromium); fi
 if [ ${#need[@]} -gt 0 ]; then
   SUDO=""
   [ "$(id -u)" -ne 0 ] && SUDO="sudo"

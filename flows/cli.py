@@ -211,6 +211,14 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
 
     from handedit.storage import Location
 
+    if args.release:
+        from handedit.dashboards.release_page import write_release_page
+
+        print(f"wrote {write_release_page(args.release, args.out)}")
+        return 0
+    if not args.store:
+        raise SystemExit("handedit dashboard: give a run folder, or --release RELEASES/VERSION")
+
     loc = Location(args.store)
     if not args.out and not loc.is_local:
         raise SystemExit("handedit dashboard: the run is on object storage; pass --out PAGE.html (a local file)")
@@ -270,8 +278,9 @@ def parser() -> argparse.ArgumentParser:
     st.set_defaults(func=cmd_status)
 
     db = sub.add_parser("dashboard", help="write the release/QA page (HTML) of a store")
-    db.add_argument("store")
-    db.add_argument("--out", help="default: STORE_DIR/qa.html")
+    db.add_argument("store", nargs="?")
+    db.add_argument("--release", help="the page of a published release instead, e.g. runs/releases/v0002")
+    db.add_argument("--out", help="default: STORE_DIR/qa.html (or RELEASE/qa.html)")
     db.set_defaults(func=cmd_dashboard)
 
     from handedit.flows.commands import register_all

@@ -144,8 +144,12 @@ def release(cfg: ReleaseConfig) -> dict:
             if key not in reusable:
                 jobs.append(ShardJob(cfg.out, Location(store).store_url, key, tuple(p.meta() for p in members)))
     shards = {k: {**s, "reused": True} for k, s in reusable.items()}
+    from handedit.flows.curate import _dashboard, _prefect_run_url
+
+    links = {"Prefect run": _prefect_run_url(), "Dask dashboard": None}
     if jobs:
         with cfg.cluster.connect() as address:
+            links["Dask dashboard"] = _dashboard(address)
             for res in write_shards.with_options(task_runner=DaskTaskRunner(address=address))(jobs):
                 shards[res["key"]] = {k: res[k] for k in ("key", "path", "sha256", "bytes", "pairs")} | {"reused": False}
     used = list(dict.fromkeys(k for _, k in pairs))
@@ -163,7 +167,7 @@ def release(cfg: ReleaseConfig) -> dict:
     loc.write_bytes(f"{version}/datasheet.md", datasheet.markdown(sheet, f"handedit release {version}").encode())
     manifest = jsonable({
         "schema": RELEASE_SCHEMA, "version": version, "parent": parent, "created": now_iso(), "code_version": code_version(),
-        "sources": sources, "counts": {"pairs": len(table), "shards": len(used), "shards_reused": sum(
+        "links": links, "sources": sources, "counts": {"pairs": len(table), "shards": len(used), "shards_reused": sum(
             1 for k in used if shards[k]["reused"]), "added": len(changes["added"]), "removed": len(changes["removed"]),
             "changed": len(changes["changed"])},
         "shards": [{k: shards[key][k] for k in ("key", "path", "sha256", "bytes", "pairs")} | {"reused": shards[key]["reused"]}

@@ -130,3 +130,27 @@ def test_bench_build_from_a_release_equals_the_store_build(released, capsys):
             fa = next(p for p in a.rglob(f) if item["id"] in str(p))
             fb = next(p for p in b.rglob(f) if item["id"] in str(p))
             assert (read_image(fa) == read_image(fb)).all(), (item["id"], f)
+
+
+def test_release_qa_page_renders_in_headless_chromium(released):
+    """The page in a real browser: every image decodes, the counts and the breakdown table are there."""
+    import re
+    import shutil as sh
+    import subprocess
+
+    browser = sh.which("chromium") or sh.which("chromium-browser")
+    assert browser, "chromium is not installed: `bash deploy/setup.sh --test` installs it (Debian package chromium)"
+    page = released["rel"] / "v0002" / "qa.html"
+    assert main(["dashboard", "--release", str(released["rel"] / "v0002")]) == 0 and page.is_file()
+    flags = [browser, "--headless=new", "--no-sandbox", "--disable-gpu", "--virtual-time-budget=10000",
+             "--window-size=1280,2400"]
+    dom = subprocess.run([*flags, "--dump-dom", page.as_uri()], capture_output=True, text=True, timeout=120).stdout
+    check = re.search(r'id="qa-check" data-images="(\d+)" data-broken="(\d+)"', dom)
+    assert check, dom[-2000:]
+    n_images, broken = map(int, check.groups())
+    m = read_release(Location(released["rel"]), "v0002")
+    assert broken == 0 and n_images >= 3
+    assert f'data-pairs="{m["counts"]["pairs"]}"' in dom and "Rejections by primary cause" in dom
+    shot = released["tmp"] / "qa.png"
+    subprocess.run([*flags, f"--screenshot={shot}", page.as_uri()], capture_output=True, timeout=120)
+    assert shot.is_file() and shot.stat().st_size > 10_000

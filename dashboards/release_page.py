@@ -1,0 +1,106 @@
+"""The QA page of a published release: one static HTML file (images inlined), so it works
+from object storage and from a laptop.
+
+    handedit dashboard --release runs/releases/v0002      -> runs/releases/v0002/qa.html
+
+Counts per track, dataset and embodiment; kept rate per stage; the failure breakdown laid
+out like the paper's table; per-embodiment galleries (source | pseudo-GT | robot mask)
+read from the release's own shards; the changelog against the parent; links to the Dask
+dashboard and the Prefect run that published it. ``#qa-check`` reports, once the page has
+loaded, how many images decoded (``data-images`` / ``data-broken``), for headless checks.
+"""
+
+from __future__ import annotations
+
+import html
+import io
+import json
+import tarfile
+
+import cv2
+import numpy as np
+
+from handedit.dashboards.release import _png, _table
+from handedit.storage import Location
+from handedit.storage.releases import read_pairs, read_release
+
+PER_EMBODIMENT = 4
+CHECK_SCRIPT = """<script>
+window.addEventListener('load', () => {
+  const imgs = [...document.images];
+  const broken = imgs.filter(i => !(i.complete && i.naturalWidth > 0)).length;
+  const el = document.getElementById('qa-check');
+  el.dataset.images = imgs.length; el.dataset.broken = broken; el.textContent = `${imgs.length} images, ${broken} broken`;
+});
+</script>"""
+
+
+def _gallery(loc: Location, pairs, manifest) -> str:
+    out = []
+    tars: dict = {}
+    for emb, rows in pairs.groupby("embodiment"):
+        picks = rows.iloc[np.linspace(0, len(rows) - 1, min(PER_EMBODIMENT, len(rows))).astype(int)]
+        cells = []
+        for _, r in picks.iterrows():
+            if r["shard"] not in tars:
+                tars[r["shard"]] = tarfile.open(fileobj=io.BytesIO(loc.read_bytes(f"shards/{r['shard']}.tar")))
+            tar = tars[r["shard"]]
+            key = f"{r['clip']}__{r['embodiment']}__{int(r['frame']):06d}".replace(".", "_")
+
+            def image(name: str) -> np.ndarray:
+                data = tar.extractfile(f"{key}.{name}").read()
+                return cv2.cvtColor(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+
+            cells.append(f"<div class=trip><b>{html.escape(r['clip'])} frame {int(r['frame'])}</b><br>"
+                         f"{_png(image('src.png'))}{_png(image('gt.png'))}{_png(image('robot_mask.png'))}</div>")
+        out.append(f"<h3>{html.escape(emb)} ({len(rows)} pairs)</h3>" + "".join(cells))
+    return "".join(out) or "<p>no pairs</p>"
+
+
+def render_release_page(loc: Location, version: str) -> str:
+    m = read_release(loc, version)
+    pairs = read_pairs(loc, version)
+    sheet = json.loads(loc.read_bytes(f"{version}/datasheet.json"))
+    log = json.loads(loc.read_bytes(f"{version}/changelog.json"))
+    counts = m["counts"]
+    kept = [{"stage": s, "OK": r["ok"], "given": r["given"], "kept rate": f"{100 * r['rate']:.1f}%" if r["rate"] is not None else "-"}
+            for s, r in sheet["kept_rate"].items()]
+    total = sheet["rejections"]["total"]
+    causes = [{"primary failure cause": r["cause"], "share of non-kept frames": f"{r['count']} / {total} ({100 * r['share']:.2f}%)"}
+              for r in sheet["rejections"]["by_cause"]]
+    per = [{"by": k, "name": name, "pairs": n} for k in ("track", "dataset", "embodiment") for name, n in sheet["counts"][k].items()]
+    changes = [{"change": k, "pairs": len(log[k]), "first": ", ".join(log[k][:5])} for k in ("added", "removed", "changed")]
+    links = m.get("links") or {}
+    link_html = " | ".join(f'<a href="{html.escape(u)}">{html.escape(k)}</a>' for k, u in links.items() if u) or "none recorded"
+    shards = [{"shard": s["key"][:12], "pairs": s["pairs"], "MB": f"{s['bytes'] / 1e6:.2f}", "sha256": s["sha256"][:16],
+               "reused": s["reused"]} for s in m["shards"]]
+    style = ("body{font-family:sans-serif;margin:1.5em}table{border-collapse:collapse;margin-bottom:1em}"
+             "td,th{border:1px solid #ccc;padding:2px 6px;font-size:13px}.trip{display:inline-block;margin:4px}")
+    return f"""<!doctype html><html><head><meta charset=utf-8><title>handedit release {html.escape(version)}</title>
+<style>{style}</style></head><body>
+<h1>handedit release {html.escape(version)}</h1>
+<p id=counts data-pairs="{counts['pairs']}" data-shards="{counts['shards']}">{counts['pairs']} pairs in {counts['shards']}
+shards ({counts['shards_reused']} reused from {html.escape(str(m['parent'] or '-'))}); created {html.escape(m['created'])}
+by {html.escape(m['code_version'])}</p>
+<p>links: {link_html}</p>
+<p id=qa-check></p>
+<h2>Pairs</h2>{_table(per, ['by', 'name', 'pairs'])}
+<h2>Kept rate per stage</h2>{_table(kept, ['stage', 'OK', 'given', 'kept rate'])}
+<h2 id=breakdown>Rejections by primary cause</h2>{_table(causes, ['primary failure cause', 'share of non-kept frames'])}
+<h2>Changes against {html.escape(str(m['parent'] or '(first release)'))}</h2>{_table(changes, ['change', 'pairs', 'first'])}
+<h2>Galleries: source | pseudo-GT | robot mask</h2>{_gallery(loc, pairs, m)}
+<h2>Shards</h2>{_table(shards, ['shard', 'pairs', 'MB', 'sha256', 'reused'])}
+{CHECK_SCRIPT}</body></html>"""
+
+
+def write_release_page(release: str, out: str | None = None) -> str:
+    """Write the page (default: ``<release>/qa.html``); returns where."""
+    from handedit.storage.location import write_text_atomic
+
+    base, _, version = str(release).rstrip("/").rpartition("/")
+    loc = Location(base or ".")
+    page = render_release_page(loc, version)
+    if out or loc.is_local:
+        return str(write_text_atomic(out or loc.path(version, "qa.html"), page))
+    loc.write_bytes(f"{version}/qa.html", page.encode())
+    return loc.path(version, "qa.html")
