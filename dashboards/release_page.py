@@ -22,6 +22,7 @@ import numpy as np
 
 from handedit.dashboards.release import _png, _table
 from handedit.storage import Location
+from handedit.storage.layout import STAGES
 from handedit.storage.releases import read_pairs, read_release
 
 PER_EMBODIMENT = 4
@@ -63,8 +64,9 @@ def render_release_page(loc: Location, version: str) -> str:
     sheet = json.loads(loc.read_bytes(f"{version}/datasheet.json"))
     log = json.loads(loc.read_bytes(f"{version}/changelog.json"))
     counts = m["counts"]
+    order = {s: i for i, s in enumerate(STAGES)}
     kept = [{"stage": s, "OK": r["ok"], "given": r["given"], "kept rate": f"{100 * r['rate']:.1f}%" if r["rate"] is not None else "-"}
-            for s, r in sheet["kept_rate"].items()]
+            for s, r in sorted(sheet["kept_rate"].items(), key=lambda kv: order.get(kv[0], 99))]
     total = sheet["rejections"]["total"]
     causes = [{"primary failure cause": r["cause"], "share of non-kept frames": f"{r['count']} / {total} ({100 * r['share']:.2f}%)"}
               for r in sheet["rejections"]["by_cause"]]

@@ -123,6 +123,7 @@ class Location:
             fd, tmp = tempfile.mkstemp(dir=Path(p).parent, prefix=".tmp-")
             with os.fdopen(fd, "wb") as f:
                 f.write(data)
+            os.chmod(tmp, 0o644)  # mkstemp's 0600 would hide the file from the other users of a shared store
             os.replace(tmp, p)
         else:
             self.fs.pipe_file(p, data)
@@ -132,6 +133,7 @@ class Location:
         p = self.path(rel)
         if self.is_local:
             Path(p).parent.mkdir(parents=True, exist_ok=True)
+            os.chmod(local, 0o644)
             shutil.move(str(local), p)
         else:
             self.fs.put_file(str(local), p)
@@ -258,5 +260,6 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
     with os.fdopen(fd, "w") as f:
         f.write(text)
+    os.chmod(tmp, 0o644)
     os.replace(tmp, path)
     return path
