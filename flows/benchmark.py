@@ -225,7 +225,7 @@ def manifest_item(out: BenchDir, it: TestItem, ref: dict, pred: str) -> Manifest
     return ManifestItem(
         id=it.id, replacement_scope=it.scope, target_name=it.target_name,
         src_path=str(out.item_file(it.id, "src")), pred_path=pred, gt_path=str(out.item_file(it.id, "gt")),
-        gt_mask_path=str(out.item_file(it.id, "robot_mask")), test_mask_path=str(out.item_file(it.id, "test_mask")),
+        gt_mask_path=str(out.item_file(it.id, "robot_mask")), test_mask_path="",  # the prediction's robot mask: editors give none
         human_mask_path=str(out.item_file(it.id, "human_mask")), robot_mask_path=str(out.item_file(it.id, "robot_mask")),
         object_mask_path=str(obj) if it.extra.get("has_object") else "",
         urdf_ref_paths=[a for a, _ in views], urdf_mask_paths=[b for _, b in views],
@@ -234,16 +234,21 @@ def manifest_item(out: BenchDir, it: TestItem, ref: dict, pred: str) -> Manifest
     )
 
 
-def load_manifest(path: str | Path) -> tuple[list[ManifestItem], list[dict]]:
-    """(valid items, per-line errors {line, id, error}); a bad line never stops the rest."""
+def load_manifest(path: str | Path, relative_to: str = "manifest") -> tuple[list[ManifestItem], list[dict]]:
+    """(valid items, per-line errors {line, id, error}); a bad line never stops the rest.
+
+    ``relative_to``: ``manifest`` (the project's test sets) or ``cwd`` (the toolkit's rule)."""
     path = Path(path)
+    if relative_to not in ("manifest", "cwd"):
+        raise ValueError(f"relative_to must be 'manifest' or 'cwd', got {relative_to!r}")
+    base = path.parent if relative_to == "manifest" else Path.cwd()
     items, errors, seen = [], [], set()
     for no, obj, err in iter_jsonl(path):
         if err:
             errors.append({"line": no, "id": None, "error": err})
             continue
         try:
-            it = ManifestItem.from_record(obj, base=path.parent, where=f"{path}:{no}: ")
+            it = ManifestItem.from_record(obj, base=base, where=f"{path}:{no}: ")
         except ManifestError as exc:
             errors.append({"line": no, "id": obj.get("id"), "error": str(exc)})
             continue
@@ -255,8 +260,10 @@ def load_manifest(path: str | Path) -> tuple[list[ManifestItem], list[dict]]:
     return items, errors
 
 
-def export_manifest(bench: str | Path, editor: str | None, dest: str | Path) -> Path:
-    """The test set's manifest with ``pred_path`` pointing at ``editor``'s predictions."""
+def export_manifest(bench: str | Path, editor: str | None, dest: str | Path, absolute: bool = False) -> Path:
+    """The test set's manifest with ``pred_path`` pointing at ``editor``'s predictions, in the
+    toolkit's spellings: paths relative to ``dest``'s folder, or absolute (what the toolkit's
+    ``eval.py`` opens from any working directory)."""
     out = BenchDir(Path(bench))
     items, errors = load_manifest(out.manifest)
     if errors:
@@ -265,7 +272,7 @@ def export_manifest(bench: str | Path, editor: str | None, dest: str | Path) -> 
     if editor:
         for it in items:
             it.pred_path = str(out.prediction(editor, it.id))
-    write_jsonl(dest, [it.to_record(dest.parent) for it in items])
+    write_jsonl(dest, [it.to_record(None if absolute else dest.parent, absolute=absolute) for it in items])
     return dest
 
 

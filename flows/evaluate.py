@@ -17,6 +17,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from prefect import flow, get_run_logger
+from typing import Literal
+
 from pydantic import BaseModel, ConfigDict, Field
 
 from handedit.flows.benchmark import load_manifest
@@ -36,6 +38,8 @@ ITEMS_CSV, SUMMARY_JSON = "items.csv", "summary.json"
 class EvaluateConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
+    paths_relative_to: Literal["manifest", "cwd"] = Field(
+        "manifest", description="relative paths: to the manifest's folder (the project's) or the working directory (the toolkit's)")
     manifest: Path = Field(description="toolkit JSONL manifest with pred_path filled")
     out: Path = Field(description="results folder (items.csv, summary.json)")
     editor: str = Field(description="the editor's display name in reports")
@@ -49,7 +53,7 @@ class EvaluateConfig(BaseModel):
 @flow(name="evaluate", log_prints=True)
 def evaluate(cfg: EvaluateConfig) -> dict:
     logger = get_run_logger()
-    items, line_errors = load_manifest(cfg.manifest)
+    items, line_errors = load_manifest(cfg.manifest, cfg.paths_relative_to)
     for e in line_errors:
         logger.error("manifest: %s", e["error"])
     missing = missing_encoders(cfg.model_dir)

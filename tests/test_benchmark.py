@@ -116,7 +116,9 @@ def test_testset_and_toolkit_manifest(bench):
     it = items[0]
     assert it.replacement_scope == "hand" and it.target_name == "Allegro" and it.pred_path == ""
     src, gt = read_image(it.src_path), read_image(it.gt_path)
-    human, robot, roi = read_mask(it.human_mask_path), read_mask(it.robot_mask_path), read_mask(it.test_mask_path)
+    human, robot = read_mask(it.human_mask_path), read_mask(it.robot_mask_path)
+    roi = read_mask(str(BenchDir(bench["dir"]).item_file(it.id, "test_mask")))
+    assert it.test_mask_path == ""  # the toolkit's meaning: the prediction's robot mask, none before an editor ran
     assert src.shape == gt.shape == (120, 160, 3) and not np.array_equal(src, gt)
     assert "-f000002-" not in " ".join(i.id for i in items)  # QC-rejected frame is not an item
     assert human.any() and robot.any() and np.array_equal(roi, human | robot)
@@ -239,16 +241,18 @@ def test_manifest_roundtrip_and_line_errors(tmp_path):
     good = {**base, "id": "x1", "replacement_scope": "hand", "target_name": "Allegro", "src_path": "imgs/a.png",
             "gt_path": str(tmp_path / "abs.png"), "urdf_ref_paths": ["r0.png"], "urdf_mask_paths": ["m0.png"]}
     rows = [good, {**good, "id": "x2", "replacement_scope": "arm"}, {k: v for k, v in good.items() if k != "gt_path"},
-            {**good, "id": "x3", "urdf_mask_paths": []}, {**good}]
+            {**good, "id": "x3", "urdf_mask_paths": []}, {"id": "x4", "target_name": "Allegro"}]
     write_jsonl(tmp_path / "m.jsonl", rows)
     items, errors = load_manifest(tmp_path / "m.jsonl")
-    assert [i.id for i in items] == ["x1"]
+    assert [i.id for i in items] == ["x1", "x3"]  # optional fields may be missing (as in the toolkit)
     assert items[0].src_path == str(tmp_path / "imgs/a.png") and items[0].gt_path == str(tmp_path / "abs.png")
+    assert items[1].urdf_ref_paths and items[1].urdf_mask_paths == []
     msgs = [e["error"] for e in errors]
-    assert "m.jsonl:2: replacement_scope must be one of" in msgs[0] and "missing field(s) gt_path" in msgs[1]
-    assert "differ in length" in msgs[2] and "duplicate id 'x1'" in msgs[3]
+    assert "m.jsonl:2: replacement_scope 'arm' is not a scope" in msgs[0] and "duplicate id 'x1'" in msgs[1]
+    assert "m.jsonl:5: missing required field(s) src_path, pred_path" in msgs[2]
     back = ManifestItem.from_record(items[0].to_record(tmp_path), base=tmp_path)
     assert back == items[0] and items[0].to_record(tmp_path)["src_path"] == "imgs/a.png"
+    assert items[0].to_record(tmp_path)["replacement_scope"] == "hand-only"  # the toolkit's spelling
     # a toolkit item without handedit's extras still gets the paper's instruction
     assert instruction_for_target("hand", "Allegro").startswith("Replace the human hand region with the robot shown")
 
@@ -266,3 +270,70 @@ def test_report_ranks_and_reference_row():
     labels, scores = radar_scores(rows)
     assert labels == ["PSNR", "LPIPS*", "VLM"]
     assert scores["Pseudo-GT"] == pytest.approx([1, 1, 1]) and scores["C"] == pytest.approx([0.2, 0.2, 0.2])  # LPIPS inverted
+
+
+def test_toolkit_example_manifest_imports(tmp_path, monkeypatch, shared_dir):
+    """The authors' own example manifest, its placeholder paths rewritten to files made here."""
+    from handedit.flows.benchmark import load_manifest as load
+
+    example = shared_dir / "benchmark" / "handedit-toolkit" / "examples" / "manifest.example.jsonl"
+    text = example.read_text().replace("/abs/path/", "files/")
+    (tmp_path / "manifest.jsonl").write_text(text)
+    monkeypatch.chdir(tmp_path)  # the toolkit opens relative paths from the working directory
+    items, errors = load(tmp_path / "manifest.jsonl", relative_to="cwd")
+    assert errors == [] and [i.id for i in items] == ["000001", "000002"]
+    a, b = items
+    assert (a.replacement_scope, a.embodiment, b.replacement_scope, b.embodiment) == ("hand", "shadow", "hand_arm", "ur5_shadow")
+    assert a.test_mask_path == str(tmp_path / "files/pred_mask/000001.png") and b.test_mask_path == ""
+    assert len(b.urdf_ref_paths) == 6 and b.urdf_mask_paths == [] and a.extra["dataset"] == "HandEdit"
+    rec = b.to_record(tmp_path)
+    assert rec["replacement_scope"] == "hand-arm" and rec["task"] == "handedit"
+
+
+def test_export_reimport_scores_identically(bench, scored, tmp_path, monkeypatch):
+    """A project test set exported in the toolkit's format (absolute paths), read back with the
+    toolkit's path rule, scores exactly as the project's own manifest did."""
+    import csv as csvmod
+
+    d = bench["dir"]
+    exported = export_manifest(d, "copy", tmp_path / "toolkit" / "manifest.jsonl", absolute=True)
+    for _, obj, _ in iter_jsonl(exported):
+        assert obj["src_path"].startswith("/") and obj["replacement_scope"] == "hand-only" and obj["test_mask_path"] == ""
+    monkeypatch.chdir(tmp_path)
+    cfg = EvaluateConfig(manifest=exported, out=tmp_path / "res", editor="copy", model_dir=bench["models"], judge=None,
+                         chunk_size=2, paths_relative_to="cwd",
+                         cluster=ClusterConfig(address=bench["cluster"].scheduler_address))
+    run_evaluate(cfg)
+    mine = {r["id"]: r for r in csvmod.DictReader(open(BenchDir(d).results("copy") / "items.csv"))}
+    again = {r["id"]: r for r in csvmod.DictReader(open(tmp_path / "res" / "items.csv"))}
+    assert set(mine) == set(again)
+    for iid, row in again.items():
+        for m in ("psnr_full", "ssim_roi", "lpips_bg", "removal", "struct_fidelity", "id_fidelity"):
+            assert row[m] == mine[iid][m], (iid, m)
+
+
+def test_missing_optional_inputs_disable_only_their_metrics(tmp_path, prefect_api, dask_cluster):
+    """A toolkit manifest with only the required fields still scores what it can, and says
+    per item what was disabled."""
+    import csv as csvmod
+
+    rng = np.random.default_rng(0)
+    src = rng.integers(0, 255, (40, 48, 3), np.uint8)
+    pred = src.copy()
+    pred[10:20, 10:20] = 200
+    for name, im in (("src.png", src), ("pred.png", pred), ("gt.png", src)):
+        write_image(tmp_path / name, im)
+    rows = [{"id": "bare", "replacement_scope": "hand-only", "target_name": "Allegro", "src_path": "src.png",
+             "pred_path": "pred.png"},
+            {"id": "with-gt", "scope": "hand", "robot_name": "allegro", "src_path": "src.png", "pred_path": "pred.png",
+             "gt_path": "gt.png"}]
+    (tmp_path / "m.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    cfg = EvaluateConfig(manifest=tmp_path / "m.jsonl", out=tmp_path / "res", editor="x", model_dir=None, judge=None,
+                         paths_relative_to="manifest", cluster=ClusterConfig(address=dask_cluster.scheduler_address))
+    s = run_evaluate(cfg)
+    assert s["n_errors"] == 0
+    got = {r["id"]: r for r in csvmod.DictReader(open(tmp_path / "res" / "items.csv"))}
+    bare, gt = got["bare"], got["with-gt"]
+    assert bare["removal"] and not bare["psnr_full"] and "no pseudo-GT" in bare["disabled"]
+    assert "ROI = whole image" in bare["disabled"] and "no object mask" in bare["disabled"]
+    assert float(gt["psnr_full"]) > 0 and not gt["psnr_bg"] and "no pseudo-GT" not in gt["disabled"]

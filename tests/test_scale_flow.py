@@ -183,6 +183,18 @@ def test_run_resume_and_status_on_object_storage(s3_server, reference, prefect_a
     for clip in ("synthetic-0000", "synthetic-0001"):
         u = Unit("harmonize", clip, embodiment="allegro")
         np.testing.assert_array_equal(s3[u.path]["image"][:], ref[u.path]["image"][:])
+    # integrity and releases on object storage too
+    assert main(["verify", url, "--deep"]) == 0
+    rel = "s3://handedit/releases"
+    assert main(["release", "--from", url, "--out", rel, "--workers", "1"]) == 0
+    from handedit.storage.releases import read_release, versions
+
+    rloc = Location(rel)
+    assert versions(rloc) == ["v0001"]
+    import hashlib
+
+    for shard in read_release(rloc, "v0001")["shards"]:
+        assert hashlib.sha256(rloc.read_bytes(shard["path"])).hexdigest() == shard["sha256"]
 
 
 def test_one_import_namespace_from_a_strict_editable_install(dask_cluster):

@@ -97,7 +97,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         raise SystemExit("handedit bench evaluate: give --bench DIR (with --name) or --manifest FILE")
     cache = (Path(args.bench) / "vlm_cache") if args.bench else out / "vlm_cache"
     judge = JudgeConfig.from_env(base_url=args.judge_url, model=args.judge_model, cache_dir=cache)
+    relative = args.paths_relative_to or ("cwd" if args.manifest else "manifest")
     cfg = EvaluateConfig(manifest=manifest, out=out, editor=args.name, model_dir=args.models or os.environ.get("HANDEDIT_MODEL_DIR"),
+                         paths_relative_to=relative,
                          judge=judge, chunk_size=args.chunk_size,
                          cluster=ClusterConfig(address=args.address, n_workers=args.workers))
     summary = run_evaluate(cfg)
@@ -118,7 +120,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def cmd_export(args: argparse.Namespace) -> int:
     from handedit.flows.benchmark import export_manifest
 
-    print(export_manifest(args.bench, args.name, args.out))
+    print(export_manifest(args.bench, args.name, args.out, absolute=args.absolute))
     return 0
 
 
@@ -169,6 +171,8 @@ def register(subparsers) -> None:
     e.add_argument("--bench")
     e.add_argument("--manifest", help="a toolkit JSONL manifest instead of --bench")
     e.add_argument("--out", help="results folder with --manifest")
+    e.add_argument("--paths-relative-to", choices=("cwd", "manifest"),
+                   help="relative paths of --manifest: the working directory (default, as the toolkit) or its folder")
     e.add_argument("--name", required=True)
     e.add_argument("--models", help="encoder ONNX folder (default env HANDEDIT_MODEL_DIR)")
     e.add_argument("--judge-url", help="OpenAI-compatible chat base URL (default env HANDEDIT_VLM_BASE_URL)")
@@ -182,6 +186,7 @@ def register(subparsers) -> None:
     x.add_argument("--bench", required=True)
     x.add_argument("--name")
     x.add_argument("--out", required=True)
+    x.add_argument("--absolute", action="store_true", help="absolute paths (what the toolkit's builder writes)")
     x.set_defaults(func=cmd_export)
 
     rp = sub.add_parser("report", help="per-track tables (md, tex, csv) and radar charts")

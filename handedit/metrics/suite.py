@@ -37,7 +37,7 @@ class ItemImages:
 
     src: np.ndarray
     pred: np.ndarray
-    gt: np.ndarray
+    gt: np.ndarray | None  # None: every metric against the pseudo-GT is disabled (NaN)
     human_mask: np.ndarray
     robot_mask: np.ndarray
     object_mask: np.ndarray | None = None
@@ -50,10 +50,11 @@ class ItemImages:
 
     def check(self) -> None:
         """Shape errors name what is wrong and what size was expected."""
-        h, w = self.gt.shape[:2]
+        ref = self.gt if self.gt is not None else self.src
+        h, w = ref.shape[:2]
         for name in ("src", "pred"):
             im = getattr(self, name)
-            if im.shape != self.gt.shape:
+            if im.shape != ref.shape:
                 raise ValueError(f"{name} is {im.shape[1]}x{im.shape[0]}, the pseudo-GT is {w}x{h}: "
                                  f"the editor must return the source resolution")
         for name in ("human_mask", "robot_mask", "object_mask"):
@@ -69,6 +70,8 @@ def score_item(items: ItemImages, enc: Encoders, cfg: EmbodiedConfig = EmbodiedC
     src, pred, gt, roi = items.src, items.pred, items.gt, items.roi
     bg = ~roi
     box = bbox(roi)
+    if gt is None:  # no pseudo-GT: only what compares the prediction with the source and references
+        return _without_gt(items, enc, cfg, roi), {}
     out: dict[str, float] = {}
     out["psnr_full"] = similarity.psnr(pred, gt)
     out["psnr_bg"] = similarity.psnr(pred, gt, bg)
@@ -79,8 +82,11 @@ def score_item(items: ItemImages, enc: Encoders, cfg: EmbodiedConfig = EmbodiedC
     gt_roi = crop(gt, box) if box else None
     out["psnr_roi"] = similarity.psnr(pred_roi, gt_roi) if box else nan
     out["ssim_roi"] = similarity.ssim(pred_roi, gt_roi) if box and min(pred_roi.shape[:2]) >= 3 else nan
-    if enc.lpips is not None:
+    if enc.lpips is not None and bg.any():
         out["lpips_full"], out["lpips_bg"] = enc.lpips.full_and_masked(pred, gt, bg)
+        out["lpips_roi"] = enc.lpips.distance(pred_roi, gt_roi) if box else nan
+    elif enc.lpips is not None:  # the ROI is the whole image: no background
+        out["lpips_full"], out["lpips_bg"] = enc.lpips.distance(pred, gt), nan
         out["lpips_roi"] = enc.lpips.distance(pred_roi, gt_roi) if box else nan
     else:
         out["lpips_full"] = out["lpips_bg"] = out["lpips_roi"] = nan
@@ -107,3 +113,15 @@ def score_item(items: ItemImages, enc: Encoders, cfg: EmbodiedConfig = EmbodiedC
         if box:
             feats.update(roi_pred=e[2], roi_gt=e[3])
     return out, feats
+
+
+def _without_gt(items: ItemImages, enc: Encoders, cfg: EmbodiedConfig, roi: np.ndarray) -> dict:
+    out = {m: float("nan") for m in METRICS if m not in ("vlm_sc", "vlm_pq", "vlm")}
+    out.update({k: float("nan") for k in EXTRAS})
+    out["removal"] = embodied.removal(items.pred, roi)
+    if enc.clip is not None and items.refs:
+        out["id_ref"] = embodied.ref_score(enc.clip, items.pred, items.robot_mask, items.refs, items.ref_masks)
+    if enc.lpips is not None and items.object_mask is not None and items.object_mask.any():
+        contact = embodied.contact_region(items.object_mask, roi, cfg)
+        out["interaction"] = embodied.interaction(enc.lpips, items.src, items.pred, contact) if contact.any() else float("nan")
+    return out
