@@ -25,7 +25,7 @@ from handedit.embodiments import (
 from handedit.embodiments.kinematics import get_kinematics
 from handedit.keypoints import FINGERTIPS
 
-HAND_IDS = ["allegro", "shadow", "leap", "inspire", "ability", "schunk_svh"]
+HAND_IDS = ["allegro", "shadow", "leap", "inspire", "ability", "schunk_svh", "orca", "revo2", "sharpa", "wuji"]
 
 
 @pytest.fixture
@@ -68,13 +68,14 @@ def test_names_and_descriptions_verbatim_from_paper(shared_dir):
 def test_missing_assets_name_what_to_provide(assets):
     from handedit.embodiments import asset_status
 
-    ok, msg = asset_status(get_embodiment("wuji"))
-    assert not ok and "hands/wuji_hand/wuji_hand_right.urdf" in msg and "HANDEDIT_ASSET_DIRS" in msg
-    with pytest.raises(AssetsMissing, match="wuji_hand_right.urdf"):
-        describe_embodiment("ur5_wuji")
+    ok, msg = asset_status(get_embodiment("rohand"))
+    assert not ok and "hands/rohand/rohand_right.urdf" in msg and "HANDEDIT_ASSET_DIRS" in msg
+    with pytest.raises(AssetsMissing, match="rohand_right.urdf"):
+        describe_embodiment("rm75_rohand")
     available = [e.id for e in list_embodiments() if asset_status(e)[0]]
     assert set(HAND_IDS) <= set(available)
-    assert {"ur5_shadow", "xarm_ability", "xarm_leap", "panda_allegro", "ur5_inspire", "ur5_schunk_svh"} <= set(available)
+    assert {"ur5_shadow", "xarm_ability", "xarm_leap", "panda_allegro", "ur5_inspire", "ur5_schunk_svh",
+            "panda_orca", "kuka_sharpa", "ur5_wuji"} <= set(available)
 
 
 def test_hand_arm_describe_arm_joints_first(assets):

@@ -292,10 +292,12 @@ def test_render_embodiment_uses_roster(robots_dir, monkeypatch):
     np.testing.assert_array_equal(res.rgba, r.render(q[None], T[None], INTR).rgba)
 
 
-HAND_ARMS = ["panda_allegro", "ur5_inspire", "ur5_schunk_svh", "ur5_shadow", "xarm_ability", "xarm_leap"]
+HAND_ARMS = ["panda_allegro", "ur5_inspire", "ur5_schunk_svh", "ur5_shadow", "xarm_ability", "xarm_leap",
+             "panda_orca", "kuka_sharpa", "ur5_wuji"]
+NEW_HANDS = ["orca", "revo2", "sharpa", "wuji"]  # hands wired from the assets' newer robots
 
 
-@pytest.mark.parametrize("emb_id", HAND_ARMS + ["leap"])
+@pytest.mark.parametrize("emb_id", HAND_ARMS + ["leap"] + NEW_HANDS)
 def test_embodiment_render_contains_projected_fk_links(robots_dir, monkeypatch, emb_id):
     """Every available hand-arm (composed URDF, roster colours) renders inside the image and the
     casadi-FK positions of its visual links project onto the rendered silhouette."""

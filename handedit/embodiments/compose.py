@@ -32,6 +32,9 @@ Mount transform: ``ee_from_hand_root`` = an exact override for an (arm asset, ha
 (the dex-urdf ``assembly/`` values) or else ``ee_from_tool @ tool_from_wrist @ wrist_from_root``:
 the arm asset's tool frame (z out of the flange), the MANO wrist frame placed a fixed adapter
 length along it, and the hand's own wrist calibration. So every hand meets every arm the same way.
+A hand whose URDF carries its own wrist module below the palm (``UrdfAsset.mount_at_root``, e.g.
+ORCA's tower) is placed with the same orientation but its root, not its wrist, at that point:
+otherwise the module would sit inside the arm's last link.
 
 Nominal reach L_r (``nominal_reach``): the largest distance from the first actuated joint's
 axis origin (the shoulder) to the ee link over in-limit joint samples (fixed seed): the
@@ -251,7 +254,11 @@ def mount_transform(arm_asset, hand_asset, tool_from_wrist: np.ndarray) -> np.nd
     for hand_path, T in arm_asset.mounts:
         if hand_path == hand_asset.path:
             return np.asarray(T, float).reshape(4, 4)
-    return arm_asset.ee_from_tool_matrix @ np.asarray(tool_from_wrist, float) @ hand_asset.wrist_from_root_matrix
+    ee_from_wrist = arm_asset.ee_from_tool_matrix @ np.asarray(tool_from_wrist, float)
+    T = ee_from_wrist @ hand_asset.wrist_from_root_matrix
+    if hand_asset.mount_at_root:  # the URDF carries its own wrist module: its root meets the flange
+        T[:3, 3] = ee_from_wrist[:3, 3]
+    return T
 
 
 def compose_embodiment(embodiment_id: str) -> ComposedEmbodiment:

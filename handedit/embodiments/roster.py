@@ -62,6 +62,7 @@ class UrdfAsset:
     wrist_from_root: tuple[tuple[float, ...], ...]
     package: str = ""
     locked_joints: tuple[tuple[str, float], ...] = ()
+    mount_at_root: bool = False  # the URDF includes its own wrist module: mount its root on a flange
 
     @property
     def wrist_from_root_matrix(self) -> np.ndarray:
@@ -296,15 +297,74 @@ def _expected_hand(folder: str, file: str) -> UrdfAsset:
     return UrdfAsset(source="asset_dir", path=f"hands/{folder}/{file}", keypoints=(), wrist_from_root=_IDENTITY)
 
 
-_REVO2 = _expected_hand("revo2_hand", "revo2_hand_right.urdf")  # BrainCo Revo2
+# BrainCo Revo2 (BrainCoTech/revo2_description_ros1): 6 actuated joints, the distal joints
+# follow their proximal ones as URDF mimic joints (thumb 1.0, fingers 1.155).
+_REVO2 = UrdfAsset(
+    source="asset_dir",
+    path="hands/revo2_hand/urdf/revo2_right_hand_rel.urdf",
+    keypoints=(_wrist("right_base_link"),)
+    + _fingers({
+        "thumb": ("right_thumb_metacarpal_link", "right_thumb_proximal_link", "right_thumb_distal_link", "right_thumb_tip_link"),
+        "index": ("right_index_proximal_link", "right_index_distal_link", None, "right_index_tip_link"),
+        "middle": ("right_middle_proximal_link", "right_middle_distal_link", None, "right_middle_tip_link"),
+        "ring": ("right_ring_proximal_link", "right_ring_distal_link", None, "right_ring_tip_link"),
+        "pinky": ("right_pinky_proximal_link", "right_pinky_distal_link", None, "right_pinky_tip_link"),
+    }),
+    wrist_from_root=_T([[0.9985, -0.00606, 0.05448, 0.0], [0.0124, 0.99308, -0.11677, 0.0], [-0.0534, 0.11727, 0.99166, 0.0], [0, 0, 0, 1]]),
+)
 _DEXHAND021 = _expected_hand("dexhand021", "dexhand021_right.urdf")
 # OrcaHand v2 ships inside the PyPI package ``orca-arm`` (bimanual OpenArm, no licence
 # metadata, 137 MB installed): not a dependency; provide a stand-alone right-hand URDF instead.
-_ORCA = _expected_hand("orca_hand", "orca_hand_right.urdf")
+# ORCA v1 (orcahand/orcahand_description): its own wrist joint is held at 0 (the free root
+# pose or the arm does its job); MCP abduction and flexion share one point, fingers have no DIP.
+_ORCA = UrdfAsset(
+    source="asset_dir",
+    path="hands/orca_hand/v1/models/urdf/orcahand_right_rel.urdf",
+    keypoints=(_wrist("right_wrist_jointbody"),)
+    + _fingers({
+        "thumb": ("right_thumb_mcp_jointbody", "right_thumb_pip_jointbody", "right_thumb_dip_jointbody", "right_thumb_fingertip"),
+        "index": ("right_index_mcp_jointbody", "right_index_pip_jointbody", None, "right_index_fingertip"),
+        "middle": ("right_middle_mcp_jointbody", "right_middle_pip_jointbody", None, "right_middle_fingertip"),
+        "ring": ("right_ring_mcp_jointbody", "right_ring_pip_jointbody", None, "right_ring_fingertip"),
+        "pinky": ("right_pinky_mcp_jointbody", "right_pinky_pip_jointbody", None, "right_pinky_fingertip"),
+    }),
+    wrist_from_root=_T([[-0.07202, 0.99724, -0.01781, 0.00849], [-0.99715, -0.07239, -0.0213, 0.08361], [-0.02253, 0.01622, 0.99961, -0.14874], [0, 0, 0, 1]]),
+    locked_joints=(("right_wrist", 0.0),),
+    mount_at_root=True,  # its tower (the wrist module, 15 cm below the palm) is what meets an arm
+)
 _RH5DG2 = _expected_hand("inspire_rh5dg2", "rh5dg2_right.urdf")
 _ROHAND = _expected_hand("rohand", "rohand_right.urdf")
-_SHARPA = _expected_hand("sharpa_hand", "sharpa_hand_right.urdf")
-_WUJI = _expected_hand("wuji_hand", "wuji_hand_right.urdf")
+# Sharpa Wave (sharpa-robotics/sharpa-urdf-usd-xml, wave_01): 22 joints; MCP flexion and
+# abduction are two joints at one point (the *_MCP_VL link), the pinky adds a CMC.
+_SHARPA = UrdfAsset(
+    source="asset_dir",
+    path="hands/sharpa_wave/wave_01/right_sharpa_wave/right_sharpa_wave_rel.urdf",
+    keypoints=(_wrist("right_hand_C_MC"),)
+    + _fingers({
+        "thumb": ("right_thumb_CMC_VL", "right_thumb_MCP_VL", "right_thumb_DP", "right_thumb_fingertip"),
+        "index": ("right_index_MCP_VL", "right_index_MP", "right_index_DP", "right_index_fingertip"),
+        "middle": ("right_middle_MCP_VL", "right_middle_MP", "right_middle_DP", "right_middle_fingertip"),
+        "ring": ("right_ring_MCP_VL", "right_ring_MP", "right_ring_DP", "right_ring_fingertip"),
+        "pinky": ("right_pinky_MCP_VL", "right_pinky_MP", "right_pinky_DP", "right_pinky_fingertip"),
+    }),
+    wrist_from_root=_T([[0.99945, 0.03305, -0.00334, 0.0], [-0.03321, 0.99438, -0.10054, 0.0], [-0.0, 0.1006, 0.99493, 0.0], [0, 0, 0, 1]]),
+)
+# Wuji (wuji-technology/wuji-hand-description): finger1 is the thumb; each finger has MCP
+# flexion + abduction (joint1, joint2), PIP (joint3), DIP (joint4). Its zero pose is below
+# the thumb's joint1 limit: the rest pose is the zero pose clipped into the limits.
+_WUJI = UrdfAsset(
+    source="asset_dir",
+    path="hands/wuji_hand/urdf/right.urdf",
+    keypoints=(_wrist("right_palm_link"),)
+    + _fingers({
+        "thumb": ("right_finger1_link1", "right_finger1_link3", "right_finger1_link4", "right_finger1_tip_link"),
+        "index": ("right_finger2_link1", "right_finger2_link3", "right_finger2_link4", "right_finger2_tip_link"),
+        "middle": ("right_finger3_link1", "right_finger3_link3", "right_finger3_link4", "right_finger3_tip_link"),
+        "ring": ("right_finger4_link1", "right_finger4_link3", "right_finger4_link4", "right_finger4_tip_link"),
+        "pinky": ("right_finger5_link1", "right_finger5_link3", "right_finger5_link4", "right_finger5_tip_link"),
+    }),
+    wrist_from_root=_T([[0.99318, 0.0247, 0.11396, 0.0], [-0.01505, 0.99629, -0.08478, 0.0], [-0.11563, 0.08248, 0.98986, 0.0], [0, 0, 0, 1]]),
+)
 
 # ---- arms ------------------------------------------------------------------------------
 _ERD = "cmeel.prefix/share/example-robot-data/robots/"
