@@ -16,14 +16,22 @@ for pkg in libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libgomp1; do
 done
 command -v "$PY" >/dev/null 2>&1 || need+=(python3.11)
 "$PY" -m venv --help >/dev/null 2>&1 || need+=(python3.11-venv)
-# the tests open the QA page in headless Chromium
-if [ -n "$extras" ] && ! command -v chromium >/dev/null 2>&1; then need+=(chromium); fi
 if [ ${#need[@]} -gt 0 ]; then
   SUDO=""
   [ "$(id -u)" -ne 0 ] && SUDO="sudo"
   echo "installing Debian packages: ${need[*]}"
   $SUDO apt-get update -qq
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${need[@]}" >/dev/null
+fi
+
+# the tests open the QA page in headless Chromium (Debian's package); a machine that cannot
+# install it still sets up, and that one test says what is missing
+if [ -n "$extras" ] && ! command -v chromium >/dev/null 2>&1; then
+  SUDO=""
+  [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+  echo "installing Debian package: chromium (for the QA page test)"
+  { $SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends chromium >/dev/null; } \
+    || echo "warning: could not install chromium; tests/test_release.py's browser test will fail until it is installed"
 fi
 
 [ -x .venv/bin/python ] || "$PY" -m venv .venv

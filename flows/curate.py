@@ -37,13 +37,13 @@ from tqdm import tqdm
 import handedit
 from handedit.embodiments import EmbodimentError, describe_embodiment, get_embodiment, resolve_urdf
 from handedit.flows.config import CurateConfig, PreflightError
-from handedit.flows.plan import ShardPlan, iter_shards, run_key
+from handedit.flows.plan import iter_shards, run_key
 from handedit.reasons import Reason
 from handedit.storage import Location, create_or_open_store
 from handedit.storage.integrity import stored_objects
 from handedit.storage.layout import SCHEMA_VERSION, clip_path
 from handedit.storage.ledger import read_ledger, status_counts
-from handedit.storage.shards import (INDEX, LEDGER, DEFAULT_LEASE_S, is_complete, new_holder, read_manifest, release,
+from handedit.storage.shards import (INDEX, LEDGER, is_complete, new_holder, read_manifest, release,
                                      renew, try_claim, write_manifest, write_partition, write_run_log)
 from handedit.storage.store import CorruptChunk, jsonable, now_iso
 from handedit.storage.summary import index_rows

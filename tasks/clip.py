@@ -202,6 +202,7 @@ def _walk_store(root, store: str, nodes, config, code_version: str, result: Walk
             records.pop((unit, chunk), None)
             drop_records(root, unit, [chunk])
             result.recovered.append(f"{unit.label}#{chunk}: recomputed, its stored bytes were corrupt")
+        present.clear()  # list again: the first pass wrote objects
         again = run(WalkResult(result.clip))
         for stage, c in again.stages.items():  # the second pass replaces those chunks' first outcome
             n, mine = c["ran"] + c["failed"], result.stages[stage]

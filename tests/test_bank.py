@@ -63,4 +63,4 @@ def test_embodiments_list_cli(capsys):
     assert " 16 " in table["allegro"] and "hand " in table["allegro"]
     assert " 30 " in table["ur5_shadow"] and "hand_arm" in table["ur5_shadow"]
     assert table["rohand"].rstrip().endswith("missing") and " 24 " in table["panda_orca"]
-    assert "19/26 embodiments available" in out
+    assert "22/26 embodiments available" in out

@@ -25,7 +25,7 @@ from handedit.embodiments import (
 from handedit.embodiments.kinematics import get_kinematics
 from handedit.keypoints import FINGERTIPS
 
-HAND_IDS = ["allegro", "shadow", "leap", "inspire", "ability", "schunk_svh", "orca", "revo2", "sharpa", "wuji"]
+HAND_IDS = ["allegro", "shadow", "leap", "inspire", "ability", "schunk_svh", "orca", "revo2", "sharpa", "wuji", "dexhand021"]
 
 
 @pytest.fixture
@@ -75,7 +75,8 @@ def test_missing_assets_name_what_to_provide(assets):
     available = [e.id for e in list_embodiments() if asset_status(e)[0]]
     assert set(HAND_IDS) <= set(available)
     assert {"ur5_shadow", "xarm_ability", "xarm_leap", "panda_allegro", "ur5_inspire", "ur5_schunk_svh",
-            "panda_orca", "kuka_sharpa", "ur5_wuji"} <= set(available)
+            "panda_orca", "kuka_sharpa", "ur5_wuji", "jaka_zu7_dexhand021", "rm65_brainco"} <= set(available)
+    assert len(available) == 22  # all but rohand, rm75_rohand (its coupling) and rh5dg2, ur5_rh5dg2 (no meshes)
 
 
 def test_hand_arm_describe_arm_joints_first(assets):
@@ -111,7 +112,7 @@ def test_allegro_resolves_from_pypi_package(monkeypatch):
 def test_resolve_from_asset_dir(assets, emb_id):
     emb = get_embodiment(emb_id)
     ra = resolve_asset(emb)
-    assert ra.path.resolve().is_relative_to(Path(assets).resolve())  # a symlinked shared/ resolves too
+    assert ra.origin.resolve().is_relative_to(Path(assets).resolve())  # a symlinked shared/ resolves too
     kin = get_kinematics(ra.path)
     links = set(kin.link_names)
     kps = ra.asset.keypoints
@@ -172,3 +173,33 @@ def test_describe_embodiment(assets):
     with pytest.raises(EmbodimentError) as ei:
         describe_embodiment("nope")
     assert int(ei.value.reason) == 902
+
+
+def test_dexhand021_couplings_and_debug_visuals_are_derived(assets, monkeypatch, tmp_path):
+    """The vendor URDF's distal joints become mimics of the proximal ones (1:1) and its debug
+    visuals are dropped, in a derived file; FK agrees with yourdfpy's on it to 1e-9."""
+    import yourdfpy
+    from lxml import etree
+
+    monkeypatch.setenv("HANDEDIT_CACHE_DIR", str(tmp_path))
+    raw = assets / "hands/dexhand021/urdf/dexhand021_right_simplified.urdf"
+    before = raw.read_bytes()
+    path = resolve_asset(get_embodiment("dexhand021")).path
+    assert path != raw and path.is_relative_to(tmp_path) and raw.read_bytes() == before
+    kin = get_kinematics(path)
+    assert kin.dof == 15 and not any(n.endswith("_4") for n in kin.joint_names)
+    u = yourdfpy.URDF.load(str(path), load_meshes=False)
+    assert u.actuated_joint_names == kin.joint_names
+    rng = np.random.default_rng(1)
+    for _ in range(4):
+        q = kin.clip(rng.uniform(-0.5, 2.0, kin.dof))
+        u.update_cfg(q)
+        for link in ("r_f_link1_tip", "r_f_link2_4", "r_f_link5_tip"):
+            np.testing.assert_allclose(u.get_transform(link, u.base_link), kin.fk(q, link), atol=1e-9)
+        rel = np.linalg.inv(kin.fk(q, "r_f_link2_3")) @ kin.fk(q, "r_f_link2_4")
+        angle = np.arccos(np.clip((np.trace(rel[:3, :3]) - 1) / 2, -1, 1))
+        assert angle == pytest.approx(q[kin.joint_names.index("r_f_joint2_3")], abs=1e-9)  # the 1:1 coupling
+    hidden = [l for l in etree.parse(str(path)).getroot().findall("link") if re.fullmatch(r"r_f_link\d_(tip|pad)", l.get("name"))]
+    assert len(hidden) == 10 and all(l.find("visual") is None for l in hidden)
+    raw_links = etree.parse(str(raw)).getroot().findall("link")
+    assert sum(l.find("visual") is not None for l in raw_links if re.fullmatch(r"r_f_link\d_(tip|pad)", l.get("name"))) == 10

@@ -63,6 +63,10 @@ class UrdfAsset:
     package: str = ""
     locked_joints: tuple[tuple[str, float], ...] = ()
     mount_at_root: bool = False  # the URDF includes its own wrist module: mount its root on a flange
+    # what the URDF does not encode (handedit.embodiments.derive): (joint, source, multiplier,
+    # offset) couplings written as <mimic>, and a link regex whose visuals are not the robot's
+    couplings: tuple[tuple[str, str, float, float], ...] = ()
+    hidden_visuals: str = ""
 
     @property
     def wrist_from_root_matrix(self) -> np.ndarray:
@@ -146,8 +150,13 @@ class Embodiment:
 
 @dataclass(frozen=True)
 class ResolvedAsset:
-    path: Path
+    path: Path  # the URDF to load (a derived file when the asset has couplings or hidden visuals)
     asset: UrdfAsset
+    source: Path | None = None  # the asset's own file (None: ``path`` is it)
+
+    @property
+    def origin(self) -> Path:
+        return self.source or self.path
 
 
 # ----------------------------------------------------------------------------------------
@@ -312,7 +321,29 @@ _REVO2 = UrdfAsset(
     }),
     wrist_from_root=_T([[0.9985, -0.00606, 0.05448, 0.0], [0.0124, 0.99308, -0.11677, 0.0], [-0.0534, 0.11727, 0.99166, 0.0], [0, 0, 0, 1]]),
 )
-_DEXHAND021 = _expected_hand("dexhand021", "dexhand021_right.urdf")
+# DexHand021 (DexRobot/dexrobot_urdf, the vendor's simplified meshes). Its README: the
+# proximal and distal joints (*_3, *_4) are mechanically coupled on the real hand but not in
+# the URDF; it gives no ratio, and both joints span [0, 1.3], so the coupling is 1:1. The
+# middle finger's spread (joint3_1, limits +-0.001) is locked at 0; the red tip spheres and
+# green pad boxes are debug visuals. The base runs ~9 cm below the palm (a wrist module):
+# the wrist keypoint sits 9.5 cm up it, and an arm mounts the base.
+_DEXHAND021 = UrdfAsset(
+    source="asset_dir",
+    path="hands/dexhand021/urdf/dexhand021_right_simplified.urdf",
+    keypoints=(_wrist("right_hand_base", (0.0, 0.0, 0.095)),)
+    + _fingers({
+        "thumb": ("r_f_link1_1", "r_f_link1_3", "r_f_link1_4", "r_f_link1_tip"),
+        "index": ("r_f_link2_2", "r_f_link2_3", "r_f_link2_4", "r_f_link2_tip"),
+        "middle": ("r_f_link3_2", "r_f_link3_3", "r_f_link3_4", "r_f_link3_tip"),
+        "ring": ("r_f_link4_2", "r_f_link4_3", "r_f_link4_4", "r_f_link4_tip"),
+        "pinky": ("r_f_link5_2", "r_f_link5_3", "r_f_link5_4", "r_f_link5_tip"),
+    }),
+    wrist_from_root=_T([[0.99713, 0.01429, -0.0744, 0.00707], [-0.02237, 0.9938, -0.10891, 0.01035], [0.07238, 0.11027, 0.99126, -0.09417], [0, 0, 0, 1]]),
+    locked_joints=(("r_f_joint3_1", 0.0),),
+    couplings=tuple((f"r_f_joint{k}_4", f"r_f_joint{k}_3", 1.0, 0.0) for k in range(1, 6)),
+    hidden_visuals=r"r_f_link\d_(tip|pad)",
+    mount_at_root=True,
+)
 # OrcaHand v2 ships inside the PyPI package ``orca-arm`` (bimanual OpenArm, no licence
 # metadata, 137 MB installed): not a dependency; provide a stand-alone right-hand URDF instead.
 # ORCA v1 (orcahand/orcahand_description): its own wrist joint is held at 0 (the free root
@@ -389,16 +420,19 @@ _IIWA7_DEX = ArmAsset(source="asset_dir", path="arms/iiwa7/iiwa7_glb.urdf", ee_l
 # Panda without its stock Franka gripper (the hand replaces it); panda_link8 is the flange.
 _PANDA_ERD = ArmAsset(source="package", package="example-robot-data", path=_ERD + "panda_description/urdf/panda.urdf",
                       ee_link="panda_link8", drop_links=("panda_hand",))
-_JAKA_ZU7 = ArmAsset(source="asset_dir", path="arms/jaka_zu7/jaka_zu7.urdf", ee_link="")
-_RM65 = ArmAsset(source="asset_dir", path="arms/rm65/rm65.urdf", ee_link="")
+# JAKA Zu7 (JAKARobotics/jaka_ros2) and RealMan RM65-B (RealManRobot/rm_models): their last
+# link's mesh ends at its origin plane (z <= 0), so the flange face is the link frame, z out.
+_JAKA_ZU7 = ArmAsset(source="asset_dir", path="arms/jaka_zu7/src/jaka_description/urdf/jaka_zu7_rel.urdf", ee_link="Link_6")
+_RM65 = ArmAsset(source="asset_dir", path="arms/rm65/RM65/urdf/RM65-B/urdf/RM65-B_rel.urdf", ee_link="link_6")
 
 UR5 = ArmSpec(name="UR5", assets=(_UR5E_DEX, _UR5_ERD))
 XARM = ArmSpec(name="xArm", assets=(_XARM7_DEX, _XARM7_ERD))
 RM75 = ArmSpec(name="RM75", assets=(_RM75_DEX,))
 KUKA = ArmSpec(name="KUKA", assets=(_IIWA7_DEX,))
 PANDA = ArmSpec(name="Panda", assets=(_PANDA_ERD,))
-JAKA = ArmSpec(name="Jaka Zu7", assets=(_JAKA_ZU7,))
-RM65 = ArmSpec(name="RM65", assets=(_RM65,))
+# their STL meshes carry no colour: the frozen descriptions' (Jaka metallic grey, RM65 smooth white)
+JAKA = ArmSpec(name="Jaka Zu7", assets=(_JAKA_ZU7,), materials={r".*": GRAY})
+RM65 = ArmSpec(name="RM65", assets=(_RM65,), materials={r".*": WHITE})
 
 _HANDS: tuple[Embodiment, ...] = (
     Embodiment(
@@ -793,7 +827,10 @@ def resolve_asset(emb: Embodiment, spec: HandSpec | None = None) -> ResolvedAsse
             f"or wrist calibration for it yet; add them to handedit/embodiments/roster.py (UrdfAsset.keypoints, "
             f"wrist_from_root via handedit.retarget.palm.calibrate_wrist_from_root)."
         )
-    return ResolvedAsset(path, asset)
+    from handedit.embodiments.derive import derived_urdf
+
+    derived = derived_urdf(path, asset)
+    return ResolvedAsset(derived, asset, path if derived != path else None)
 
 
 @dataclass(frozen=True)
@@ -829,7 +866,7 @@ def asset_status(emb: Embodiment) -> tuple[bool, str]:
     """(available, where from or what is missing) without loading meshes."""
     try:
         hand = resolve_asset(emb)
-        src = hand.asset.package if hand.asset.source == "package" else str(hand.path.parent)
+        src = hand.asset.package if hand.asset.source == "package" else str(hand.origin.parent)
         if emb.arm is not None:
             arm = resolve_arm(emb)
             src = (arm.asset.package if arm.asset.source == "package" else str(arm.path.parent)) + " + " + src

@@ -1,0 +1,64 @@
+"""Derived URDFs: what a vendor's URDF does not encode, added without editing the asset.
+
+Some hands are modelled more loosely than the real product: DexHand021's distal joints
+are mechanically coupled to the proximal ones but independent in its URDF, and the file
+carries debug visuals (tip spheres, pad boxes). A ``UrdfAsset`` states the fixes as data
+(``couplings``: (joint, source joint, multiplier, offset), written as URDF ``<mimic>``
+tags, which yourdfpy, the renderer and the casadi kinematics all honour; ``hidden_visuals``:
+a link-name regex whose ``<visual>`` elements are dropped). The derived file lives in
+``$HANDEDIT_CACHE_DIR/derived`` (mesh paths made absolute), named by a digest of its
+inputs, written atomically, so concurrent workers agree on it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+import tempfile
+from pathlib import Path
+
+from lxml import etree
+
+from handedit.embodiments.errors import EmbodimentError
+
+
+def needs_derivation(asset) -> bool:
+    return bool(getattr(asset, "couplings", ()) or getattr(asset, "hidden_visuals", ""))
+
+
+def derived_urdf(path: Path, asset) -> Path:
+    """The asset's URDF with its couplings and hidden visuals applied (``path`` if none)."""
+    if not needs_derivation(asset):
+        return path
+    from handedit.embodiments.compose import _absolutize_meshes, _cache_dir, _parse
+
+    st = path.stat()
+    key = hashlib.blake2b(repr((str(path), st.st_size, st.st_mtime_ns, asset.couplings, asset.hidden_visuals)).encode(),
+                          digest_size=8).hexdigest()
+    out = _cache_dir().parent / "derived" / f"{path.stem}-{key}.urdf"
+    if out.is_file():
+        return out
+    tree = _parse(path)
+    root = tree.getroot()
+    _absolutize_meshes(root, path)
+    joints = {j.get("name"): j for j in root.findall("joint")}
+    for name, source, multiplier, offset in asset.couplings:
+        if name not in joints or source not in joints:
+            raise EmbodimentError(f"URDF {path}: coupling {name} <- {source}: no such joint; joints: {sorted(joints)}")
+        j = joints[name]
+        for old in j.findall("mimic"):
+            j.remove(old)
+        etree.SubElement(j, "mimic", joint=source, multiplier=repr(float(multiplier)), offset=repr(float(offset)))
+    if asset.hidden_visuals:
+        pattern = re.compile(asset.hidden_visuals)
+        for link in root.findall("link"):
+            if pattern.fullmatch(link.get("name", "")):
+                for v in link.findall("visual"):
+                    link.remove(v)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=".tmp-", suffix=".urdf")
+    with os.fdopen(fd, "wb") as f:
+        f.write(etree.tostring(tree, pretty_print=True, xml_declaration=True, encoding="utf-8"))
+    os.replace(tmp, out)
+    return out
