@@ -104,7 +104,7 @@ created {root.attrs.get('created')} by {root.attrs.get('created_by')}</p>
 
 
 def write_page(root: zarr.Group, out: str | Path, title: str = "") -> Path:
-    from handedit.storage.location import write_text_atomic
+    from handedit.storage.location import atomic_write
 
     out = Path(out)
-    return write_text_atomic(out, render_page(root, title or out.parent.name))
+    return atomic_write(out, render_page(root, title or out.parent.name).encode())

@@ -13,17 +13,16 @@ loaded, how many images decoded (``data-images`` / ``data-broken``), for headles
 from __future__ import annotations
 
 import html
-import io
 import json
-import tarfile
 
-import cv2
 import numpy as np
 
 from handedit.dashboards.release import _png, _table
+from handedit.images import decode_rgb
+from handedit.release.samples import sample_key
 from handedit.storage import Location
 from handedit.storage.layout import STAGES
-from handedit.storage.releases import read_pairs, read_release
+from handedit.storage.releases import ShardReader, read_pairs, read_release, split_release
 
 PER_EMBODIMENT = 4
 CHECK_SCRIPT = """<script>
@@ -36,24 +35,17 @@ window.addEventListener('load', () => {
 </script>"""
 
 
-def _gallery(loc: Location, pairs, manifest) -> str:
+def _gallery(loc: Location, pairs) -> str:
+    shards = ShardReader(loc)
     out = []
-    tars: dict = {}
     for emb, rows in pairs.groupby("embodiment"):
         picks = rows.iloc[np.linspace(0, len(rows) - 1, min(PER_EMBODIMENT, len(rows))).astype(int)]
         cells = []
         for _, r in picks.iterrows():
-            if r["shard"] not in tars:
-                tars[r["shard"]] = tarfile.open(fileobj=io.BytesIO(loc.read_bytes(f"shards/{r['shard']}.tar")))
-            tar = tars[r["shard"]]
-            key = f"{r['clip']}__{r['embodiment']}__{int(r['frame']):06d}".replace(".", "_")
-
-            def image(name: str) -> np.ndarray:
-                data = tar.extractfile(f"{key}.{name}").read()
-                return cv2.cvtColor(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
-
+            key = sample_key(r["clip"], r["embodiment"], r["frame"])
+            images = [decode_rgb(shards.member(r["shard"], key, n)) for n in ("src.png", "gt.png", "robot_mask.png")]
             cells.append(f"<div class=trip><b>{html.escape(r['clip'])} frame {int(r['frame'])}</b><br>"
-                         f"{_png(image('src.png'))}{_png(image('gt.png'))}{_png(image('robot_mask.png'))}</div>")
+                         + "".join(_png(im) for im in images) + "</div>")
         out.append(f"<h3>{html.escape(emb)} ({len(rows)} pairs)</h3>" + "".join(cells))
     return "".join(out) or "<p>no pairs</p>"
 
@@ -90,19 +82,18 @@ by {html.escape(m['code_version'])}</p>
 <h2>Kept rate per stage</h2>{_table(kept, ['stage', 'OK', 'given', 'kept rate'])}
 <h2 id=breakdown>Rejections by primary cause</h2>{_table(causes, ['primary failure cause', 'share of non-kept frames'])}
 <h2>Changes against {html.escape(str(m['parent'] or '(first release)'))}</h2>{_table(changes, ['change', 'pairs', 'first'])}
-<h2>Galleries: source | pseudo-GT | robot mask</h2>{_gallery(loc, pairs, m)}
+<h2>Galleries: source | pseudo-GT | robot mask</h2>{_gallery(loc, pairs)}
 <h2>Shards</h2>{_table(shards, ['shard', 'pairs', 'MB', 'sha256', 'reused'])}
 {CHECK_SCRIPT}</body></html>"""
 
 
 def write_release_page(release: str, out: str | None = None) -> str:
     """Write the page (default: ``<release>/qa.html``); returns where."""
-    from handedit.storage.location import write_text_atomic
+    from handedit.storage.location import atomic_write
 
-    base, _, version = str(release).rstrip("/").rpartition("/")
-    loc = Location(base or ".")
+    loc, version = split_release(release)
     page = render_release_page(loc, version)
     if out or loc.is_local:
-        return str(write_text_atomic(out or loc.path(version, "qa.html"), page))
+        return str(atomic_write(out or loc.path(version, "qa.html"), page.encode()))
     loc.write_bytes(f"{version}/qa.html", page.encode())
     return loc.path(version, "qa.html")

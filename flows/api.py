@@ -41,6 +41,16 @@ def configured_url() -> str | None:
     return str(url) if url else None
 
 
+def run_url() -> str | None:
+    """The Prefect UI page of the current flow run (None without a UI, e.g. a temporary API)."""
+    try:
+        from prefect.runtime import flow_run
+
+        return flow_run.ui_url
+    except Exception:  # noqa: BLE001 - a link, never a reason to fail
+        return None
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

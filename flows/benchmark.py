@@ -24,9 +24,10 @@ from handedit.benchmark.prices import price_per_image
 from handedit.benchmark.testset import TRACK_NAMES, TestItem, instruction, item_id, select_frames
 from handedit.embodiments import get_embodiment
 from handedit.reasons import Reason
-from handedit.storage import Unit, open_store
+from handedit.storage import Location, Unit, open_store
 from handedit.storage.benchmark import (BenchDir, BenchIOError, append_jsonl, decode_image, encode_png, iter_jsonl, read_json,
                                read_image, write_bytes, write_image, write_json, write_jsonl, write_text)
+from handedit.storage.integrity import require_complete
 from handedit.storage.layout import SCOPE_MASK
 from handedit.storage.store import now_iso, read_array
 
@@ -61,22 +62,9 @@ def build_testset(store: str | Path, bench: str | Path, n_sources: int = 1000, e
     from handedit.storage.summary import curated_clips
 
     clips = curated_clips(root)
-    refuse_holes(store, clips, "bench build")
+    require_complete(Location(store), clips, "bench build")
     with staged_dir(bench) as tmp:  # the folder appears only once complete
         return _build(StoreItems(root, clips), store, BenchDir(tmp), n_sources, embodiments, bank, seed, tracks)
-
-
-def refuse_holes(store, clips, command: str) -> None:
-    """Publishing reads only data the records vouch for: refuse when any of it is gone."""
-    from handedit.storage import Location, StoreError
-    from handedit.storage.integrity import verify
-
-    loc = Location(store)
-    problems = verify(loc, clips=clips)
-    if problems:
-        listing = "\n  ".join(p.describe() for p in problems[:10])
-        raise StoreError(f"{command}: {len(problems)} recorded chunk(s) of {loc.store_url} are missing:\n  {listing}\n"
-                         f"run `handedit verify {loc.url} --repair`, then `handedit curate` again, before publishing")
 
 
 class StoreItems:
@@ -106,15 +94,13 @@ class ReleaseItems:
     """Test-set inputs from a published release: its pairs table and its shards."""
 
     def __init__(self, release: str):
-        from handedit.storage import Location
-        from handedit.storage.releases import read_pairs
+        from handedit.storage.releases import ShardReader, read_pairs, split_release
 
-        base, _, version = str(release).rstrip("/").rpartition("/")
-        self.loc, self.version = Location(base or "."), version
-        self.pairs = read_pairs(self.loc, version)
+        self.loc, self.version = split_release(release)
+        self.pairs = read_pairs(self.loc, self.version)
         self.clips = sorted(set(self.pairs["clip"]))
         self.embodiments = dict(zip(self.pairs["embodiment"], self.pairs["track"]))
-        self._tars: dict = {}
+        self.shards = ShardReader(self.loc)
 
     def kept(self, clip: str, emb: str) -> np.ndarray | None:
         rows = self.pairs[(self.pairs["clip"] == clip) & (self.pairs["embodiment"] == emb)]
@@ -125,27 +111,20 @@ class ReleaseItems:
         return k
 
     def item(self, clip: str, emb: str, frame: int, scope: str):
-        import io
         import json
-        import tarfile
 
-        from handedit.release.samples import Pair
+        from handedit.release.samples import sample_key
 
-        row = self.pairs[(self.pairs["clip"] == clip) & (self.pairs["embodiment"] == emb) & (self.pairs["frame"] == frame)].iloc[0]
-        shard = row["shard"]
-        if shard not in self._tars:
-            self._tars[shard] = tarfile.open(fileobj=io.BytesIO(self.loc.read_bytes(f"shards/{shard}.tar")))
-        tar = self._tars[shard]
-        key = Pair(clip, emb, frame, (), "", "", "", "", "", "").key
+        pairs = self.pairs
+        shard = pairs.loc[(pairs["clip"] == clip) & (pairs["embodiment"] == emb) & (pairs["frame"] == frame), "shard"].iloc[0]
+        key = sample_key(clip, emb, frame)
 
-        def member(name: str) -> bytes:
-            return tar.extractfile(f"{key}.{name}").read()
+        def image(name: str) -> np.ndarray:
+            return decode_image(self.shards.member(shard, key, name), f"{key}.{name}")
 
-        rgb = [decode_image(member(n), f"{key}.{n}") for n in ("src.png", "gt.png")]
-        masks = [decode_image(member(n), f"{key}.{n}")[..., 0] > 127 for n in ("human_mask.png", "robot_mask.png",
-                                                                                 "object_mask.png")]
-        has_obj = json.loads(member("json")).get("has_object")
-        return rgb[0], rgb[1], masks[0], masks[1], masks[2] if has_obj else None
+        masks = [image(n)[..., 0] > 127 for n in ("human_mask.png", "robot_mask.png", "object_mask.png")]
+        has_obj = json.loads(self.shards.member(shard, key, "json")).get("has_object")
+        return image("src.png"), image("gt.png"), masks[0], masks[1], masks[2] if has_obj else None
 
 
 def build_testset_from_release(release: str | Path, bench: str | Path, n_sources: int = 1000,

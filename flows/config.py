@@ -105,15 +105,20 @@ class ClusterConfig(BaseModel):
             return self.no_worker_timeout_s
         return 1800.0 if (self.address or self.cluster_class) else 120.0
 
+    def scheduler_host(self) -> tuple[str | None, int]:
+        """(host, port) of ``address`` (``tcp://host:port`` or ``host:port``; port 8786 by default)."""
+        from urllib.parse import urlparse
+
+        u = urlparse(self.address if "://" in self.address else f"tcp://{self.address}")
+        return u.hostname, u.port or 8786
+
     def check_reachable(self, timeout_s: float = 10.0) -> None:
         """An unreachable scheduler address is one message now, not a traceback after a
         long connect timeout."""
         import socket
-        from urllib.parse import urlparse
 
-        u = urlparse(self.address if "://" in self.address else f"tcp://{self.address}")
         try:
-            with socket.create_connection((u.hostname, u.port or 8786), timeout=timeout_s):
+            with socket.create_connection(self.scheduler_host(), timeout=timeout_s):
                 pass
         except (OSError, ValueError) as exc:
             raise PreflightError(f"cannot reach the Dask scheduler at {self.address} ({exc}); start it "
@@ -144,6 +149,17 @@ class ClusterConfig(BaseModel):
                                        memory_limit=self.memory_limit)
         with cluster:
             yield cluster.scheduler_address
+
+
+def dashboard_link(address: str) -> str | None:
+    """The Dask dashboard URL of the scheduler at ``address`` (None when it has none)."""
+    try:
+        from distributed import Client
+
+        with Client(address, timeout=30) as c:
+            return c.dashboard_link
+    except Exception:  # noqa: BLE001 - a link, never a reason to fail
+        return None
 
 
 Url = Annotated[str, BeforeValidator(lambda v: str(v))]

@@ -19,7 +19,6 @@ shard with failures stays incomplete, so the next run retries exactly what faile
 from __future__ import annotations
 
 import contextvars
-import hashlib
 import json
 import os
 import subprocess
@@ -27,7 +26,6 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
-from functools import lru_cache
 from pathlib import Path
 
 from distributed import span
@@ -35,13 +33,15 @@ from prefect import flow, get_run_logger
 from tqdm import tqdm
 
 import handedit
+from handedit.digests import file_digest
 from handedit.embodiments import EmbodimentError, describe_embodiment, get_embodiment, resolve_urdf
-from handedit.flows.config import CurateConfig, PreflightError
+from handedit.flows.api import run_url
+from handedit.flows.config import CurateConfig, PreflightError, dashboard_link
 from handedit.flows.plan import iter_shards, run_key
 from handedit.reasons import Reason
-from handedit.storage import Location, create_or_open_store
-from handedit.storage.integrity import stored_objects
-from handedit.storage.layout import SCHEMA_VERSION, clip_path
+from handedit.storage import Location, create_or_open_store, open_store
+from handedit.storage.integrity import chunk_object_count, clips_missing_objects
+from handedit.storage.layout import SCHEMA_VERSION, STAGES
 from handedit.storage.ledger import read_ledger, status_counts
 from handedit.storage.shards import (INDEX, LEDGER, is_complete, new_holder, read_manifest, release,
                                      renew, try_claim, write_manifest, write_partition, write_run_log)
@@ -49,7 +49,6 @@ from handedit.storage.store import CorruptChunk, jsonable, now_iso
 from handedit.storage.summary import index_rows
 from handedit.tasks.clip import ClipJob, EmbodimentJob, curate_clip, curate_embodiment, stage_version_params
 
-STAGE_NAMES = ("ingest", "registration", "segment", "restore_background", "retarget", "render", "composite", "harmonize", "qc")
 
 
 def code_version() -> str:
@@ -88,28 +87,10 @@ def plan_embodiments(ids: list[str]) -> list[EmbodimentPlan]:
     return plans
 
 
-def file_digest(path: Path) -> str:
-    """sha256 of a file, cached by (path, size, mtime)."""
-    try:
-        st = path.stat()
-    except OSError:
-        return "missing"
-    return _file_digest(str(path), st.st_size, st.st_mtime_ns)
-
-
-@lru_cache(maxsize=64)
-def _file_digest(path: str, size: int, mtime_ns: int) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def model_digests(config: CurateConfig) -> dict[str, str]:
     """Content of each stage's model file (new weights at the same path change the run key)."""
     out = {}
-    for stage in STAGE_NAMES:
+    for stage in STAGES:
         path = getattr(config.stage_config(stage), "model_path", None)
         if path:
             out[stage] = file_digest(Path(path))
@@ -117,7 +98,7 @@ def model_digests(config: CurateConfig) -> dict[str, str]:
 
 
 def the_run_key(config: CurateConfig, embs: list[EmbodimentPlan]) -> str:
-    params = {s: stage_version_params(config, s) for s in STAGE_NAMES}
+    params = {s: stage_version_params(config, s) for s in STAGES}
     return run_key(config.frames_per_chunk, {"params": params, "models": model_digests(config)},
                    [{"id": e.id, "scope": e.scope, "urdf": e.urdf_digest, "error": e.error} for e in embs], SCHEMA_VERSION)
 
@@ -142,9 +123,9 @@ def curate_shard(config_json: str, shard_id: str, specs_json: list[str], embodim
     loc = Location(config.out)
     started = now_iso()
     scopes = tuple(sorted({e["scope"] for e in embodiments}))
+    clips = [parse_spec(json.loads(s)).id for s in specs_json]
     clip_futures, emb_futures = [], []
-    for spec_json in specs_json:
-        clip_id = parse_spec(json.loads(spec_json)).id
+    for spec_json, clip_id in zip(specs_json, clips):
         with span("curate", "clip"):  # Dask spans: the dashboard groups time per embodiment and stage
             fc = curate_clip.submit(ClipJob(loc.store_url, spec_json, config_json, scopes, code), clip_id=clip_id)
         clip_futures.append(fc)
@@ -167,10 +148,7 @@ def curate_shard(config_json: str, shard_id: str, specs_json: list[str], embodim
         recovered += res.get("recovered", [])
         if res.get("source_error") and res["clip"] not in source_errors and "could not be ingested" not in res["source_error"]:
             source_errors[res["clip"]] = res["source_error"]
-    from handedit.storage import open_store
-
     root = open_store(loc)
-    clips = [parse_spec(json.loads(s)).id for s in specs_json]
     ok_clips = [c for c in clips if c not in source_errors]
     written = time.time()
     try:
@@ -191,37 +169,18 @@ def curate_shard(config_json: str, shard_id: str, specs_json: list[str], embodim
     write_run_log(loc, shard_id, run_id, log)
     write_manifest(loc, shard_id, {"shard": shard_id, "clips": clips, "digest": digest, "complete": complete,
                                    "embodiments": embodiments, "updated": now_iso(), "run": run_id, "stages": stages,
-                                   "objects": {c: count_chunk_objects(loc, c) for c in ok_clips} if complete else {}})
+                                   "objects": {c: chunk_object_count(loc, c) for c in ok_clips} if complete else {}})
     return log
-
-
-def _prefect_run_url() -> str | None:
-    """The Prefect UI page of this flow run (None without a UI, e.g. a temporary API)."""
-    try:
-        from prefect.runtime import flow_run
-
-        return flow_run.ui_url
-    except Exception:  # noqa: BLE001 - a link, never a reason to fail
-        return None
-
-
-def count_chunk_objects(loc: Location, clip: str) -> int:
-    """Chunk objects stored under a clip (one listing): what a complete shard vouches for."""
-    return sum(1 for k in stored_objects(loc, clip_path(clip)) if "/c/" in k)
 
 
 def _objects_missing(loc: Location, manifest: dict, check: bool) -> bool:
     """A complete shard whose clips now hold fewer chunk objects than when it completed (a
     deleted chunk or array): run it again; its walk finds and recomputes exactly those."""
-    if not check:
-        return False
-    for clip, n in (manifest.get("objects") or {}).items():
-        have = count_chunk_objects(loc, clip)
-        if have < n:
-            get_run_logger().warning("shard %s: clip %s has %d of its %d chunk objects; recomputing what is missing",
-                           manifest.get("shard"), clip, have, n)
-            return True
-    return False
+    gone = clips_missing_objects(loc, manifest.get("objects") or {}) if check else []
+    for clip, have, n in gone:
+        get_run_logger().warning("shard %s: clip %s has %d of its %d chunk objects; recomputing what is missing",
+                                 manifest.get("shard"), clip, have, n)
+    return bool(gone)
 
 
 # ----------------------------------------------------------------------------- the driver
@@ -237,7 +196,6 @@ class _Leases:
     def __init__(self, loc: Location, lease_s: float):
         self.loc, self.lease_s = loc, lease_s
         self.claims: dict[str, object] = {}
-        self.lost: set[str] = set()
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -248,8 +206,7 @@ class _Leases:
             with self._lock:
                 claims = list(self.claims.values())
             for c in claims:
-                if not renew(self.loc, c, self.lease_s):
-                    self.lost.add(c.shard)
+                renew(self.loc, c, self.lease_s)  # False: a newer generation took the shard over (--take-over)
 
     def add(self, claim) -> None:
         with self._lock:
@@ -296,16 +253,6 @@ def _watch_workers(address: str, timeout_s: float, stop: threading.Event, lost: 
         client.close()
 
 
-def _dashboard(address: str) -> str | None:
-    try:
-        from distributed import Client
-
-        with Client(address, timeout=30) as c:
-            return c.dashboard_link
-    except Exception:  # noqa: BLE001
-        return None
-
-
 @flow(name="curate")
 def curate(config: CurateConfig, progress: bool = False) -> dict:
     """Curate ``config`` (clips and source trees) x ``config.embodiments`` into ``config.out``."""
@@ -328,8 +275,8 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
                "recovered": []}
     bar = tqdm(desc="curate", unit="shard", disable=not progress)
     with config.cluster.connect() as address:
-        summary["dashboard"] = link = _dashboard(address)
-        summary["prefect_run"] = ui = _prefect_run_url()
+        summary["dashboard"] = link = dashboard_link(address)
+        summary["prefect_run"] = ui = run_url()
         logger.info("Dask dashboard: %s; Prefect run: %s", link, ui)
         if progress:
             tqdm.write(f"Dask dashboard: {link or '(not available)'}\nPrefect run:    {ui or '(no UI)'}")
@@ -400,18 +347,19 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
 
 
 def _finish(loc: Location, summary: dict, started: str) -> dict:
-    from handedit.storage import open_store
     from handedit.storage.summary import read_index
 
     root = open_store(loc)
     index = read_index(loc)
+    failed = index["error"].astype(str) != "" if index is not None else None
     every = sorted(set(index["clip"])) if index is not None else []
-    clips = sorted(set(index.loc[index["error"].astype(str) == "", "clip"])) if index is not None else []
+    clips = sorted(set(index.loc[~failed, "clip"])) if index is not None else []
+    unreadable = dict(zip(index.loc[failed, "clip"], index.loc[failed, "error"])) if index is not None else {}
     summary["clips"] = {"curated": len(clips), "unreadable": len(every) - len(clips)}
     summary["status"], summary["rejections"] = [], {}
     try:
         summary["status"] = status_counts(root, clips=clips).to_dict(orient="records")
-        ledger = read_ledger(root, clips=every)  # the unreadable clips' rows too: the ledger's own counts
+        ledger = read_ledger(root, clips=every, source_errors=unreadable)  # with the unreadable clips' rows
         by_reason = ledger.groupby(["stage", "reason_name"]).size().to_dict() if len(ledger) else {}
         summary["rejections"] = {f"{s}:{r}": int(n) for (s, r), n in by_reason.items()}
     except CorruptChunk as exc:  # a chunk no task of this run touched: named, with what to run
@@ -462,8 +410,7 @@ def _warn_unreachable_api(api: str, config: CurateConfig) -> None:
     from urllib.parse import urlparse
 
     local = ("127.0.0.1", "localhost", "::1")
-    remote = config.cluster.cluster_class or (config.cluster.address and urlparse(
-        config.cluster.address if "://" in config.cluster.address else f"tcp://{config.cluster.address}").hostname not in local)
+    remote = config.cluster.cluster_class or (config.cluster.address and config.cluster.scheduler_host()[0] not in local)
     if remote and urlparse(api).hostname in local:
         logging.getLogger("handedit.curate").warning(
             "the run's Prefect API is %s, which workers on other hosts cannot reach: run `prefect server start` on a "

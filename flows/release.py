@@ -15,8 +15,10 @@ source and refuses to publish a hole. See ``handedit.release`` for the sample fo
 
 from __future__ import annotations
 
+import hashlib
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pandas as pd
@@ -24,11 +26,13 @@ from prefect import flow, get_run_logger
 from pydantic import BaseModel, ConfigDict, Field
 
 from handedit.embodiments import get_embodiment
-from handedit.flows.config import ClusterConfig
+from handedit.flows.api import run_url
+from handedit.flows.config import ClusterConfig, dashboard_link
 from handedit.reasons import Reason
 from handedit.release import datasheet
 from handedit.release.samples import Pair, TARGET_SHARD_BYTES, changelog, content_key, cut_parts, pairs_per_shard, shard_key
 from handedit.storage import Location, StoreError, Unit, open_store, read_records
+from handedit.storage.integrity import require_complete
 from handedit.storage.ledger import read_ledger, status_counts, unit_sides
 from handedit.storage.releases import RELEASE_SCHEMA, latest, next_version, publish, read_pairs, read_release
 from handedit.storage.store import jsonable, now_iso, read_array
@@ -52,35 +56,49 @@ def _digests(records: dict, chunk: int) -> list[str]:
     return sorted(rec.outputs.values()) if rec is not None else []
 
 
-def plan_pairs(store: str, embodiments: list[str], target_bytes: int) -> tuple[list[Pair], dict]:
-    """Every kept pair of one curated run, each with its shard part (see module doc)."""
+def _stage_versions(root, clip: str, emb: str) -> dict:
+    """Version and parameters of the stages a pair reads, as the curate run stored them."""
+    out = {}
+    for stage in ("ingest", "segment", "retarget", "render", "composite", "harmonize", "qc"):
+        u = Unit(stage, clip) if stage in READS else Unit(stage, clip, embodiment=emb)
+        attrs = root[u.path].attrs if u.path in root else {}
+        out[stage] = {"version": attrs.get("version"), "params": attrs.get("params")}
+    return out
+
+
+def by_part(pairs: list[Pair]) -> dict[str, list[Pair]]:
+    """Pairs grouped by their ``part``, in first-seen order (one pass)."""
+    groups: dict[str, list[Pair]] = {}
+    for p in pairs:
+        groups.setdefault(p.part, []).append(p)
+    return groups
+
+
+def plan_pairs(loc: Location, root, clips: list[str], embodiments: list[str], target_bytes: int) -> tuple[list[Pair], dict]:
+    """Every kept pair of one curated run's ``clips``, each with its shard part (see module doc)."""
     from handedit.benchmark.testset import instruction
     from handedit.storage.shards import read_manifest, shard_ids
 
-    loc = Location(store)
-    root = open_store(loc)
-    clips = curated_clips(root)
+    clips = set(clips)
     f = int(root.attrs["frames_per_chunk"])
-    order = [c for s in shard_ids(loc) for c in (read_manifest(loc, s) or {}).get("clips", []) if c in set(clips)]
-    group_of = {c: s for s in shard_ids(loc) for c in (read_manifest(loc, s) or {}).get("clips", [])}
-    order += [c for c in clips if c not in set(order)]
+    manifests = {s: read_manifest(loc, s) or {} for s in shard_ids(loc)}
+    group_of = {c: s for s, m in manifests.items() for c in m.get("clips", [])}
+    order = [c for m in manifests.values() for c in m.get("clips", []) if c in clips]
+    order += sorted(clips - set(order))
     pairs: list[Pair] = []
-    fingerprints, stages = {}, {}
+    fingerprints, stages, n_frames, hw = {}, {}, {}, None
     for clip in order:
-        src_unit = Unit("ingest", clip)
-        info = dict(root[src_unit.path].attrs.get("info") or {})
+        info = dict(root[Unit("ingest", clip).path].attrs.get("info") or {})
         meta = info.get("meta") or {}
-        fingerprints[clip] = info.get("fingerprint", "")
+        fingerprints[clip], n_frames[clip] = info.get("fingerprint", ""), int(info["n_frames"])
+        hw = hw or (int(info["height"]), int(info["width"]))
         clip_records = {u: read_records(root, Unit(u, clip)) for u in READS}
         embs = root[f"clips/{clip}/embodiments"].group_keys() if f"clips/{clip}/embodiments" in root else []
         for emb in sorted(e for e in embs if not embodiments or e in embodiments):
             qc_unit = Unit("qc", clip, embodiment=emb)
             if qc_unit.path not in root:
                 continue
-            for stage in ("ingest", "segment", "retarget", "render", "composite", "harmonize", "qc"):
-                u = Unit(stage, clip, embodiment=emb) if stage not in READS else Unit(stage, clip)
-                attrs = root[u.path].attrs if u.path in root else {}
-                stages.setdefault(stage, {"version": attrs.get("version"), "params": attrs.get("params")})
+            stages = stages or _stage_versions(root, clip, emb)
             e = get_embodiment(emb)
             text = instruction(e.track, e.name, e.description)
             reference = f"{emb}:bank-view-0"
@@ -96,31 +114,21 @@ def plan_pairs(store: str, embodiments: list[str], target_bytes: int) -> tuple[l
                                   str(meta.get("task") or meta.get("task_folder") or ""), text, reference,
                                   content_key(t, replaced, digests, text, reference), part))
     # cut each (curate shard, embodiment) group into parts of whole clips, by frame count
-    n_frames = {c: int(root[Unit("ingest", c).path]["status"].shape[0]) for c in order}
-    hw = root[Unit("ingest", order[0]).path]["frames"].shape[1:3] if order else (1, 1)
-    per_part = pairs_per_shard(int(hw[0]), int(hw[1]), target_bytes)
+    per_part = pairs_per_shard(*(hw or (1, 1)), target_bytes)
     out = []
-    for group in dict.fromkeys(p.part for p in pairs):
-        members = [p for p in pairs if p.part == group]
+    for group, members in by_part(pairs).items():
         cut = cut_parts([(c, n_frames[c]) for c in dict.fromkeys(p.clip for p in members)], per_part)
-        out += [Pair(**{**p.__dict__, "part": f"{group}/{cut[p.clip]:04d}"}) for p in members]
+        out += [replace(p, part=f"{group}/{cut[p.clip]:04d}") for p in members]
     source = {"store": loc.store_url, "clips": len(order), "stages": stages,
-              "fingerprint": _hash(json.dumps(fingerprints, sort_keys=True)), "frames_per_chunk": f,
-              "pairs_per_shard": per_part}
+              "fingerprint": hashlib.sha256(json.dumps(fingerprints, sort_keys=True).encode()).hexdigest(),
+              "frames_per_chunk": f, "pairs_per_shard": per_part}
     return out, source
-
-
-def _hash(text: str) -> str:
-    import hashlib
-
-    return hashlib.sha256(text.encode()).hexdigest()
 
 
 @flow(name="release")
 def release(cfg: ReleaseConfig) -> dict:
     from prefect_dask import DaskTaskRunner
 
-    from handedit.flows.benchmark import refuse_holes
     from handedit.flows.curate import code_version
     from handedit.tasks.release import ShardJob
 
@@ -131,36 +139,36 @@ def release(cfg: ReleaseConfig) -> dict:
     parent_manifest = read_release(loc, parent) if parent else None
     parent_pairs = read_pairs(loc, parent) if parent else None
     reusable = {s["key"]: s for s in (parent_manifest or {}).get("shards", [])}
-    pairs, sources, jobs = [], [], []
+    pairs, sources, jobs, curated = [], [], [], []
     for store in cfg.sources:
-        root = open_store(store)
-        refuse_holes(store, curated_clips(root), "release")
-        got, source = plan_pairs(store, cfg.embodiments, cfg.target_shard_bytes)
+        src = Location(store)
+        root = open_store(src)
+        clips = curated_clips(root)
+        require_complete(src, clips, "release")
+        curated.append((root, clips))
+        got, source = plan_pairs(src, root, clips, cfg.embodiments, cfg.target_shard_bytes)
         sources.append(source)
-        for part in dict.fromkeys(p.part for p in got):
-            members = [p for p in got if p.part == part]
+        for members in by_part(got).values():
             key = shard_key(members)
             pairs += [(p, key) for p in members]
             if key not in reusable:
-                jobs.append(ShardJob(cfg.out, Location(store).store_url, key, tuple(p.meta() for p in members)))
-    shards = {k: {**s, "reused": True} for k, s in reusable.items()}
-    from handedit.flows.curate import _dashboard, _prefect_run_url
-
-    links = {"Prefect run": _prefect_run_url(), "Dask dashboard": None}
+                jobs.append(ShardJob(cfg.out, src.store_url, key, tuple(p.meta() for p in members)))
+    shards = {k: {**_shard_entry(s), "reused": True} for k, s in reusable.items()}
+    links = {"Prefect run": run_url(), "Dask dashboard": None}
     if jobs:
         with cfg.cluster.connect() as address:
-            links["Dask dashboard"] = _dashboard(address)
+            links["Dask dashboard"] = dashboard_link(address)
             for res in write_shards.with_options(task_runner=DaskTaskRunner(address=address))(jobs):
-                shards[res["key"]] = {k: res[k] for k in ("key", "path", "sha256", "bytes", "pairs")} | {"reused": False}
+                shards[res["key"]] = {**_shard_entry(res), "reused": False}
     used = list(dict.fromkeys(k for _, k in pairs))
     table = pd.DataFrame([{**p.meta(), "id": p.id, "sides": ",".join(p.sides), "shard": k} for p, k in pairs],
                          columns=["id", "clip", "embodiment", "frame", "sides", "track", "dataset", "task", "instruction",
                                   "reference", "content", "shard"])
     version = next_version(loc)
     changes = changelog(parent_pairs, table)
-    sheet = datasheet.build(table, _status(cfg.sources), _ledger(cfg.sources),
+    sheet = datasheet.build(table, _status(curated), _ledger(curated),
                             sorted(set(table["embodiment"])) if len(table) else [])
-    _write_table(loc, f"{version}/pairs.parquet", table)
+    loc.write_table(f"{version}/pairs.parquet", table)
     loc.write_json(f"{version}/changelog.json", {"parent": parent, **changes})
     loc.write_bytes(f"{version}/changelog.md", _changelog_md(version, parent, changes).encode())
     loc.write_json(f"{version}/datasheet.json", sheet)
@@ -170,8 +178,7 @@ def release(cfg: ReleaseConfig) -> dict:
         "links": links, "sources": sources, "counts": {"pairs": len(table), "shards": len(used), "shards_reused": sum(
             1 for k in used if shards[k]["reused"]), "added": len(changes["added"]), "removed": len(changes["removed"]),
             "changed": len(changes["changed"])},
-        "shards": [{k: shards[key][k] for k in ("key", "path", "sha256", "bytes", "pairs")} | {"reused": shards[key]["reused"]}
-                   for key in used],
+        "shards": [shards[key] for key in used],
     })
     if not publish(loc, version, manifest):
         raise StoreError(f"another release published {version} of {cfg.out} while this one ran; run `handedit release` "
@@ -190,21 +197,21 @@ def write_shards(jobs: list) -> list[dict]:
     return [f.result() for f in [write_release_shard.submit(j) for j in jobs]]
 
 
-def _status(stores: list[str]) -> pd.DataFrame:
-    frames = []
-    for store in stores:
-        root = open_store(store)
-        frames.append(status_counts(root, clips=curated_clips(root)))
-    df = pd.concat(frames, ignore_index=True)
+SHARD_FIELDS = ("key", "path", "sha256", "bytes", "pairs")
+
+
+def _shard_entry(info: dict) -> dict:
+    return {k: info[k] for k in SHARD_FIELDS}
+
+
+def _status(curated: list) -> pd.DataFrame:
+    """Frames per (stage, status) over every source's released clips."""
+    df = pd.concat([status_counts(root, clips=clips) for root, clips in curated], ignore_index=True)
     return df.groupby(["stage", "status"], sort=False, as_index=False)["frames"].sum()
 
 
-def _ledger(stores: list[str]) -> pd.DataFrame:
-    return pd.concat([read_ledger(open_store(s)) for s in stores], ignore_index=True)
-
-
-def _write_table(loc: Location, rel: str, frame: pd.DataFrame) -> None:
-    loc.write_table(rel, frame)
+def _ledger(curated: list) -> pd.DataFrame:
+    return pd.concat([read_ledger(root, clips=clips) for root, clips in curated], ignore_index=True)
 
 
 def _changelog_md(version: str, parent: str | None, changes: dict) -> str:

@@ -8,8 +8,6 @@ would mistake for a finished prediction.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Iterator
@@ -17,7 +15,9 @@ from typing import Any, Iterable, Iterator
 import cv2
 import numpy as np
 
+from handedit import images
 from handedit.secrets import redact_obj
+from handedit.storage.location import atomic_write
 from handedit.storage.layout import (BENCH_ITEM_FILES, BENCH_MANIFEST, BENCH_META, BENCH_REPORT, BENCH_VLM_CACHE,
                             bench_item_dir, bench_prediction_dir, bench_ref_paths, bench_results_dir)
 from handedit.storage.store import jsonable
@@ -69,48 +69,31 @@ class BenchDir:
         return self.root / BENCH_REPORT
 
 
-def _atomic_write(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def encode_png(image: np.ndarray) -> bytes:
-    a = np.ascontiguousarray(image)
-    if a.dtype == bool:
-        a = a.astype(np.uint8) * 255
-    if a.ndim == 3:
-        a = cv2.cvtColor(a, cv2.COLOR_RGB2BGR if a.shape[2] == 3 else cv2.COLOR_RGBA2BGRA)
-    ok, buf = cv2.imencode(".png", a)
-    if not ok:
-        raise BenchIOError(f"cannot PNG-encode an array of shape {image.shape}")
-    return buf.tobytes()
+    try:
+        return images.encode_png(image)
+    except ValueError as exc:
+        raise BenchIOError(str(exc)) from None
 
 
 def write_image(path: str | Path, image: np.ndarray) -> Path:
     """uint8 RGB/RGBA or bool mask -> PNG (masks as 0/255 grey)."""
     path = Path(path)
-    _atomic_write(path, encode_png(image))
+    atomic_write(path, encode_png(image))
     return path
 
 
 def write_bytes(path: str | Path, data: bytes) -> Path:
     path = Path(path)
-    _atomic_write(path, data)
+    atomic_write(path, data)
     return path
 
 
 def decode_image(data: bytes, what: str = "image") -> np.ndarray:
-    a = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    a = images.decode_rgb(data)
     if a is None:
         raise BenchIOError(f"{what}: not a decodable image ({len(data)} bytes)")
-    return cv2.cvtColor(a, cv2.COLOR_BGR2RGB)
+    return a
 
 
 def _imread(path: str | Path, flags: int, what: str, fix: str = "") -> np.ndarray:
@@ -138,7 +121,7 @@ def read_mask(path: str | Path) -> np.ndarray:
 
 def write_json(path: str | Path, obj: Any) -> Path:
     path = Path(path)
-    _atomic_write(path, (json.dumps(redact_obj(jsonable(obj)), indent=2, sort_keys=True) + "\n").encode())
+    atomic_write(path, (json.dumps(redact_obj(jsonable(obj)), indent=2, sort_keys=True) + "\n").encode())
     return path
 
 
@@ -155,7 +138,7 @@ def read_json(path: str | Path) -> Any:
 def write_jsonl(path: str | Path, rows: Iterable[dict]) -> Path:
     path = Path(path)
     data = "".join(json.dumps(redact_obj(jsonable(r)), sort_keys=True) + "\n" for r in rows)
-    _atomic_write(path, data.encode())
+    atomic_write(path, data.encode())
     return path
 
 
@@ -189,5 +172,5 @@ def iter_jsonl(path: str | Path) -> Iterator[tuple[int, dict | None, str | None]
 
 def write_text(path: str | Path, text: str) -> Path:
     path = Path(path)
-    _atomic_write(path, text.encode())
+    atomic_write(path, text.encode())
     return path

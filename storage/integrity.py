@@ -63,31 +63,30 @@ def object_keys(array: zarr.Array, start: int, stop: int) -> list[str]:
     return [f"{array.path}/{enc.encode_chunk_key(c)}" for c in itertools.product(first, *rest)]
 
 
-def _output_array(root: zarr.Group, unit: Unit, name: str):
-    """The array a record's output ``name`` refers to (None for outputs kept elsewhere)."""
-    if "/" in name:  # previews/<name>: per-side review previews, checked by their own digests
-        return None
-    path = f"{unit.path}/{name}"
-    return root[path] if path in root else None
-
-
 def stored_objects(loc, prefix: str) -> set[str]:
     """Store keys of every object under ``prefix`` (a clip's or a unit's path): one listing."""
     return {f"{prefix}/{k}" for k in loc.find(f"{loc.store_name}/{prefix}")}
 
 
+def _outputs(root: zarr.Group, unit: Unit, rec: ChunkRecord, present: set[str]):
+    """(output name, array or None when the array itself is gone, its objects not in
+    ``present``) per array a record wrote; review previews (``previews/<side>``, their own
+    group, their own digests) are not chunked by frame and are skipped."""
+    for name in rec.outputs:
+        if "/" in name:
+            continue
+        path = f"{unit.path}/{name}"
+        if path not in root:
+            yield name, None, [path]
+            continue
+        arr = root[path]
+        yield name, arr, [k for k in object_keys(arr, rec.start, rec.stop) if k not in present]
+
+
 def missing_objects(root: zarr.Group, unit: Unit, record: ChunkRecord | dict, present: set[str]) -> list[str]:
     """Output objects a record vouches for that are not in ``present`` (a listing)."""
     rec = record if isinstance(record, ChunkRecord) else ChunkRecord.from_json(record)
-    missing = []
-    for name in rec.outputs:
-        arr = _output_array(root, unit, name)
-        if arr is None and "/" not in name:
-            missing.append(f"{unit.path}/{name}")
-            continue
-        if arr is not None:
-            missing += [k for k in object_keys(arr, rec.start, rec.stop) if k not in present]
-    return missing
+    return [k for _, _, gone in _outputs(root, unit, rec, present) for k in gone]
 
 
 def check_unit(root: zarr.Group, unit: Unit, present: set[str], deep: bool = False) -> list[Problem]:
@@ -96,26 +95,22 @@ def check_unit(root: zarr.Group, unit: Unit, present: set[str], deep: bool = Fal
 
     problems = []
     for k, rec in sorted(read_records(root, unit).items()):
-        for name, want in rec.outputs.items():
-            arr = _output_array(root, unit, name)
-            if arr is None:
-                if "/" not in name:
-                    problems.append(Problem(unit, k, f"{unit.path}/{name}", rec.start, rec.stop, "missing",
-                                            "the array itself is gone"))
-                continue
-            gone = [key for key in object_keys(arr, rec.start, rec.stop) if key not in present]
+        for name, arr, gone in _outputs(root, unit, rec, present):
+            where = arr.path if arr is not None else gone[0]
             if gone:
-                problems.append(Problem(unit, k, arr.path, rec.start, rec.stop, "missing", ", ".join(gone[:3])))
+                detail = "the array itself is gone" if arr is None else ", ".join(gone[:3])
+                problems.append(Problem(unit, k, where, rec.start, rec.stop, "missing", detail))
                 continue
-            if deep:
-                try:
-                    got = digest(read_array(arr, slice(rec.start, rec.stop)))
-                except CorruptChunk as exc:
-                    problems.append(Problem(unit, k, arr.path, rec.start, rec.stop, "unreadable", exc.cause))
-                    continue
-                if got != want:
-                    problems.append(Problem(unit, k, arr.path, rec.start, rec.stop, "mismatch",
-                                            f"digest {got[:12]} != recorded {want[:12]}"))
+            if not deep:
+                continue
+            try:
+                got = digest(read_array(arr, slice(rec.start, rec.stop)))
+            except CorruptChunk as exc:
+                problems.append(Problem(unit, k, where, rec.start, rec.stop, "unreadable", exc.cause))
+                continue
+            if got != rec.outputs[name]:
+                problems.append(Problem(unit, k, where, rec.start, rec.stop, "mismatch",
+                                        f"digest {got[:12]} != recorded {rec.outputs[name][:12]}"))
     return problems
 
 
@@ -168,3 +163,31 @@ def repair(loc, problems: list[Problem]) -> dict:
         drop_records(root, unit, chunks)
     shards = invalidate(loc, sorted({p.unit.clip for p in problems}))
     return {"records_dropped": sum(len(c) for c in by_unit.values()), "units": len(by_unit), "shards": shards}
+
+
+def require_complete(loc, clips, command: str) -> None:
+    """Publishing reads only data the records vouch for: a ``StoreError`` listing what is
+    missing (presence check) when any of it is gone."""
+    from handedit.storage.store import StoreError
+
+    problems = verify(loc, clips=clips)
+    if problems:
+        listing = "\n  ".join(p.describe() for p in problems[:10])
+        raise StoreError(f"{command}: {len(problems)} recorded chunk(s) of {loc.store_url} are missing:\n  {listing}\n"
+                         f"run `handedit verify {loc.url} --repair`, then `handedit curate` again, before publishing")
+
+
+def chunk_object_count(loc, clip: str) -> int:
+    """Chunk objects stored under a clip (one listing): what a complete shard records."""
+    return sum(1 for k in stored_objects(loc, clip_path(clip)) if "/c/" in k)
+
+
+def clips_missing_objects(loc, counts: dict[str, int]) -> list[tuple[str, int, int]]:
+    """(clip, stored, recorded) for every clip that now holds fewer chunk objects than
+    ``counts`` (a shard's manifest) recorded: a deleted chunk or array."""
+    out = []
+    for clip, n in counts.items():
+        have = chunk_object_count(loc, clip)
+        if have < n:
+            out.append((clip, have, n))
+    return out

@@ -119,12 +119,7 @@ class Location:
         """Atomic whole-file write (see module doc)."""
         p = self.path(rel)
         if self.is_local:
-            Path(p).parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(dir=Path(p).parent, prefix=".tmp-")
-            with os.fdopen(fd, "wb") as f:
-                f.write(data)
-            os.chmod(tmp, 0o644)  # mkstemp's 0600 would hide the file from the other users of a shared store
-            os.replace(tmp, p)
+            atomic_write(p, data)
         else:
             self.fs.pipe_file(p, data)
 
@@ -253,13 +248,18 @@ def staged_dir(final: str | os.PathLike):
     shutil.rmtree(old, ignore_errors=True)
 
 
-def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
-    """A local file written whole or not at all (temporary file, then rename)."""
+def atomic_write(path: str | os.PathLike, data: bytes) -> Path:
+    """A local file written whole or not at all (a temporary file beside it, then a rename),
+    readable by the other users of a shared folder (mkstemp's 0600 would hide it)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
     return path

@@ -3,6 +3,7 @@
     <releases>/                              a local folder or an object-store prefix
       shards/<key>.tar                       WebDataset shards, named by the content key of the
                                              pairs they hold; shared by every release, never rewritten
+      shards/<key>.json                      its sha256, size and pairs, written once the shard is whole
       v0001/pairs.parquet                    every pair of the release with its metadata and shard
       v0001/changelog.json, changelog.md     added / removed / changed pairs against the parent
       v0001/datasheet.json, datasheet.md     counts, kept rates, rejection breakdown
@@ -26,12 +27,23 @@ SHARDS_DIR = "shards"
 _VERSION = re.compile(r"^v(\d{4,})$")
 
 
+def split_release(release: str) -> tuple[Location, str]:
+    """``<releases>/<version>`` (a path or URL) -> (the releases location, the version)."""
+    base, _, version = str(release).rstrip("/").rpartition("/")
+    return Location(base or "."), version
+
+
 def version_name(n: int) -> str:
     return f"v{n:04d}"
 
 
 def shard_rel(key: str) -> str:
     return f"{SHARDS_DIR}/{key}.tar"
+
+
+def shard_info_rel(key: str) -> str:
+    """The sidecar written after a shard is complete: its hash, size and pair count."""
+    return f"{SHARDS_DIR}/{key}.json"
 
 
 def versions(loc: Location) -> list[str]:
@@ -79,3 +91,22 @@ def shard_urls(loc: Location, version: str) -> list[str]:
     manifest = read_release(loc, version)
     return [loc.path(s["path"]) if loc.is_local else f"{loc.protocol}://{loc.path(s['path'])}"
             for s in manifest["shards"]]
+
+
+class ShardReader:
+    """Members of a release's samples, read from its shards (each shard fetched once)."""
+
+    def __init__(self, loc: Location):
+        self.loc = loc
+        self._tars: dict = {}
+
+    def member(self, shard: str, key: str, name: str) -> bytes:
+        import io
+        import tarfile
+
+        if shard not in self._tars:
+            data = self.loc.read_bytes(shard_rel(shard))
+            if data is None:
+                raise FileNotFoundError(f"{self.loc.path(shard_rel(shard))} is missing")
+            self._tars[shard] = tarfile.open(fileobj=io.BytesIO(data))
+        return self._tars[shard].extractfile(f"{key}.{name}").read()

@@ -32,11 +32,10 @@ from prefect import task
 
 from handedit.reasons import Reason
 from handedit.storage import Unit, create_unit, read_records, write_records
-from handedit.storage.layout import STAGES
-from handedit.storage.provenance import is_current, provenance_key
 from handedit.storage.integrity import missing_objects, stored_objects
+from handedit.storage.layout import STAGES
 from handedit.storage.location import location_of
-from handedit.storage.provenance import drop_records
+from handedit.storage.provenance import ChunkRecord, drop_records, is_current, provenance_key
 from handedit.storage.store import CorruptChunk, create_previews, jsonable
 from handedit.tasks.common import RETRIES, RETRY_DELAYS, ChunkJob, execute, failure_record, is_transient, open_root
 
@@ -193,7 +192,7 @@ def _walk_store(root, store: str, nodes, config, code_version: str, result: Walk
         return record
 
     def run(into: WalkResult) -> WalkResult:
-        return walk(nodes, params.__getitem__, records, run_noting, lambda n, r: write_records(root, n.unit, [_record(r)]),
+        return walk(nodes, params.__getitem__, records, run_noting, lambda n, r: write_records(root, n.unit, [ChunkRecord.from_json(r)]),
                     into, faulty=lambda u: _faulty(config, u), prefail=pre, missing=missing)
 
     run(result)
@@ -220,12 +219,6 @@ def _owned_chunk(corrupt: dict, units, f: int) -> list:
     """[(unit, chunk)] a CorruptChunk's array path and frames point to, if one of ``units``."""
     unit_path = corrupt["array"].rsplit("/", 1)[0]
     return [(u, int(corrupt["start"]) // f) for u in units if u.path == unit_path]
-
-
-def _record(data: dict):
-    from handedit.storage.provenance import ChunkRecord
-
-    return ChunkRecord.from_json(data)
 
 
 def _run(root, job: ChunkJob, body) -> dict:
@@ -310,13 +303,12 @@ def create_embodiment_units(root, config, plan, emb: dict) -> None:
 def _asset_inputs(config, nodes, emb: dict | None = None) -> None:
     """Files a stage reads besides the store are inputs too, by content: a stage's model
     weights, and the robot's URDF for the stages that load it."""
-    from handedit.flows.curate import file_digest
-    from pathlib import Path
+    from handedit.digests import file_digest
 
     for node in nodes:
         path = getattr(config.stage_config(node.unit.stage), "model_path", None)
         if path:
-            node.fixed_inputs["model"] = file_digest(Path(path))
+            node.fixed_inputs["model"] = file_digest(path)
         if emb is not None and node.unit.stage in ("retarget", "render"):
             node.fixed_inputs["urdf"] = emb.get("urdf_digest", "")
 

@@ -13,7 +13,6 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import lru_cache
 
-import numpy as np
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
@@ -21,7 +20,7 @@ from handedit.benchmark.manifest import ManifestItem
 from handedit.benchmark.testset import instruction_for_target
 from handedit.metrics.embodied import EmbodiedConfig
 from handedit.metrics.encoders import Encoders, load_encoders
-from handedit.metrics.suite import ItemImages, score_item
+from handedit.metrics.suite import ItemImages, item_images, score_item
 from handedit.metrics.vlm import JudgeConfig, VlmJudge
 from handedit.storage.benchmark import read_image, read_mask
 from handedit.tasks.common import RETRIES, RETRY_DELAYS, retry_transient
@@ -42,36 +41,19 @@ def _encoders(model_dir: str | None) -> Encoders:
 
 
 def load_item(it: ManifestItem) -> tuple[ItemImages, str]:
-    """The item's images, and what its missing optional inputs disable (as the toolkit: no
-    human/robot masks -> the ROI is the whole image; no object mask -> no Interaction; no
-    pseudo-GT -> only Removal, ID (references) and Interaction; no references -> no S_ref)."""
+    """The item's images as files give them (optional ones may be absent), and what the
+    missing ones disable (``handedit.metrics.suite.item_images``)."""
     if not it.pred_path:
         raise FileNotFoundError(f"item {it.id} has no pred_path: run the editor first (handedit bench run)")
-    src, pred = read_image(it.src_path), read_image(it.pred_path)
-    hw = src.shape[:2]
-    human = read_mask(it.human_mask_path) if it.human_mask_path else None
-    robot = read_mask(it.robot_mask_path) if it.robot_mask_path else None
-    notes = []
-    if human is None and robot is None:
-        human, robot = np.ones(hw, bool), np.zeros(hw, bool)
-        notes.append("no human/robot masks: ROI = whole image, no background metrics, no Lab term")
-    elif human is None or robot is None:
-        notes.append(f"no {'human' if human is None else 'robot'} mask: ROI = the other one")
-        human = human if human is not None else np.zeros(hw, bool)
-        robot = robot if robot is not None else np.zeros(hw, bool)
-    if not it.gt_path:
-        notes.append("no pseudo-GT: generic metrics, Struct and the Lab term disabled")
-    if not it.object_mask_path:
-        notes.append("no object mask: no Interaction")
-    refs = [read_image(p) for p in it.urdf_ref_paths]
-    if not refs:
-        notes.append("no reference renders: no S_ref")
-    masks = [read_mask(it.urdf_mask_paths[i]) if i < len(it.urdf_mask_paths) and it.urdf_mask_paths[i]
-             else np.ones(r.shape[:2], bool) for i, r in enumerate(refs)]  # no mask: the whole view
-    return ItemImages(
-        src=src, pred=pred, gt=read_image(it.gt_path) if it.gt_path else None, human_mask=human, robot_mask=robot,
-        object_mask=read_mask(it.object_mask_path) if it.object_mask_path else None, refs=refs, ref_masks=masks,
-    ), "; ".join(notes)
+
+    def mask(path: str):
+        return read_mask(path) if path else None
+
+    return item_images(
+        read_image(it.src_path), read_image(it.pred_path), read_image(it.gt_path) if it.gt_path else None,
+        mask(it.human_mask_path), mask(it.robot_mask_path), mask(it.object_mask_path),
+        [read_image(p) for p in it.urdf_ref_paths], [mask(p) for p in it.urdf_mask_paths],
+    )
 
 
 def body(job: EvalJob) -> dict:

@@ -9,19 +9,18 @@ attempt of the same content) is not written again.
 
 from __future__ import annotations
 
-import hashlib
 import os
 import tempfile
 from dataclasses import dataclass
 
-import numpy as np
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
-from handedit.release.samples import Pair, TarWriter, sample_files
+from handedit.digests import file_sha256
+from handedit.release.samples import Pair, TarWriter, sample_files, union_sides
 from handedit.storage import Location, Unit
 from handedit.storage.layout import SCOPE_MASK
-from handedit.storage.releases import shard_rel
+from handedit.storage.releases import shard_info_rel, shard_rel
 from handedit.storage.store import read_array
 from handedit.tasks.common import open_root
 
@@ -34,14 +33,9 @@ class ShardJob:
     pairs: tuple[dict, ...]  # Pair fields, frames in order
 
 
-def _union(masks: np.ndarray, sides_all: list[str], sides: list[str]) -> np.ndarray:
-    idx = [sides_all.index(s) for s in sides if s in sides_all] or list(range(len(sides_all)))
-    return np.asarray(masks)[idx].any(0)
-
-
 def write_shard(job: ShardJob) -> dict:
     loc = Location(job.out)
-    sidecar = shard_rel(job.key)[:-len(".tar")] + ".json"
+    sidecar = shard_info_rel(job.key)
     done = loc.read_json(sidecar)
     if done:
         return {**done, "written": False}
@@ -60,19 +54,16 @@ def write_shard(job: ShardJob) -> dict:
             t = p.frame
             for name, data in sample_files(
                     p, read_array(src_g["frames"], t), read_array(harm["image"], t), read_array(comp["image"], t),
-                    _union(read_array(seg[SCOPE_MASK[p.track]], t), sides_all, list(p.sides)),
-                    _union(read_array(comp["robot_mask"], t), sides_all, list(p.sides)),
+                    union_sides(read_array(seg[SCOPE_MASK[p.track]], t), sides_all, list(p.sides)),
+                    union_sides(read_array(comp["robot_mask"], t), sides_all, list(p.sides)),
                     read_array(src_g["object_mask"], t) if "object_mask" in src_g else None):
                 writer.add(name, data)
             n += 1
         writer.close()
-    h = hashlib.sha256()
-    with open(tmp, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
+    sha = file_sha256(tmp)
     size = os.path.getsize(tmp)
     loc.put_file(tmp, shard_rel(job.key))
-    info = {"key": job.key, "path": shard_rel(job.key), "sha256": h.hexdigest(), "bytes": size, "pairs": n}
+    info = {"key": job.key, "path": shard_rel(job.key), "sha256": sha, "bytes": size, "pairs": n}
     loc.write_json(sidecar, info)  # after the tar: a sidecar vouches for a complete shard
     return {**info, "written": True}
 

@@ -8,7 +8,7 @@ import zarr
 from prefect import task
 
 from handedit.camera import Intrinsics
-from handedit.reasons import Reason, combine, combine_hands, gate, per_frame
+from handedit.reasons import Reason, combine, gate, per_frame
 from handedit.retarget import RetargetConfig
 from handedit.retarget.sides import SidesResult, preview_intrinsics, retarget_hand_arm_sides, retarget_sides
 from handedit.storage import Unit, open_store, read_chunk

@@ -13,7 +13,7 @@ from handedit.flows.cli import main
 from handedit.flows.config import ClusterConfig, CurateConfig
 from handedit.flows.curate import run_curate
 from handedit.sources.synthetic import make_clip_specs
-from handedit.storage import Location, StoreError, open_store
+from handedit.storage import Location
 from handedit.storage.releases import read_pairs, read_release, shard_urls, versions
 from handedit.storage.summary import read_index
 
@@ -154,3 +154,10 @@ def test_release_qa_page_renders_in_headless_chromium(released):
     shot = released["tmp"] / "qa.png"
     subprocess.run([*flags, f"--screenshot={shot}", page.as_uri()], capture_output=True, timeout=120)
     assert shot.is_file() and shot.stat().st_size > 10_000
+
+
+def test_datasheet_families_follow_the_pipeline_order():
+    from handedit.release.datasheet import FAMILY
+    from handedit.storage.layout import STAGES
+
+    assert tuple(FAMILY) == STAGES  # the primary cause is the earliest stage in this order

@@ -63,6 +63,33 @@ class ItemImages:
                 raise ValueError(f"{name} is {m.shape}, expected {(h, w)}")
 
 
+def item_images(src: np.ndarray, pred: np.ndarray, gt: np.ndarray | None = None, human_mask: np.ndarray | None = None,
+                robot_mask: np.ndarray | None = None, object_mask: np.ndarray | None = None,
+                refs: list[np.ndarray] = (), ref_masks: list[np.ndarray | None] = ()) -> tuple[ItemImages, str]:
+    """An item from whatever inputs it has, and what the missing ones disable, as the authors'
+    toolkit does: no human/robot masks -> the ROI is the whole image; no object mask -> no
+    Interaction; no pseudo-GT -> only Removal, ID (references) and Interaction; no
+    references -> no S_ref; a reference without a mask -> its whole view."""
+    hw = src.shape[:2]
+    notes = []
+    if human_mask is None and robot_mask is None:
+        human_mask, robot_mask = np.ones(hw, bool), np.zeros(hw, bool)
+        notes.append("no human/robot masks: ROI = whole image, no background metrics, no Lab term")
+    elif human_mask is None or robot_mask is None:
+        notes.append(f"no {'human' if human_mask is None else 'robot'} mask: ROI = the other one")
+        human_mask = human_mask if human_mask is not None else np.zeros(hw, bool)
+        robot_mask = robot_mask if robot_mask is not None else np.zeros(hw, bool)
+    if gt is None:
+        notes.append("no pseudo-GT: generic metrics, Struct and the Lab term disabled")
+    if object_mask is None:
+        notes.append("no object mask: no Interaction")
+    if not refs:
+        notes.append("no reference renders: no S_ref")
+    masks = [m if m is not None else np.ones(r.shape[:2], bool)
+             for r, m in zip(refs, [*ref_masks, *[None] * (len(refs) - len(ref_masks))])]
+    return ItemImages(src, pred, gt, human_mask, robot_mask, object_mask, list(refs), masks), "; ".join(notes)
+
+
 def score_item(items: ItemImages, enc: Encoders, cfg: EmbodiedConfig = EmbodiedConfig()) -> tuple[dict, dict]:
     """-> (metrics {name: float}, features {'full_pred','full_gt','roi_pred','roi_gt': (D,)})."""
     items.check()

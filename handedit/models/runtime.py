@@ -10,13 +10,14 @@ The file's sha256 goes into the stage's ``method`` string (provenance).
 
 from __future__ import annotations
 
-import hashlib
 import os
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+
+from handedit.digests import file_sha256
 
 
 class ModelContractError(ValueError):
@@ -94,14 +95,6 @@ class LoadedModel:
                 f"expected signature: {self.contract.signature()}"
             ) from exc
         return dict(zip(names, outs))
-
-
-def file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _providers() -> list[str]:

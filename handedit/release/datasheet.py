@@ -12,20 +12,20 @@ from __future__ import annotations
 
 import pandas as pd
 
-from handedit.storage.layout import STAGES
-
-# the paper's four families (Table "pseudogt_failure_breakdown"), plus the input stages
+# the paper's four families (Table "pseudogt_failure_breakdown"), plus the input stages;
+# keyed in pipeline order
 FAMILY = {"ingest": "Input / source", "registration": "Input / source", "segment": "Segmentation",
           "restore_background": "Background restoration / inpainting", "retarget": "Hand retargeting",
           "render": "Rendering / compositing", "composite": "Rendering / compositing",
           "harmonize": "Rendering / compositing", "qc": "Rendering / compositing"}
 
 
-def primary_causes(ledger: pd.DataFrame, embodiments: list[str]) -> pd.DataFrame:
-    """One row per rejected (clip, embodiment, frame): its earliest rejecting stage."""
+def primary_causes(ledger: pd.DataFrame, embodiments: list[str], stages=tuple(FAMILY)) -> pd.DataFrame:
+    """One row per rejected (clip, embodiment, frame): its earliest rejecting stage
+    (``stages``: the pipeline order)."""
     if ledger is None or not len(ledger):
         return pd.DataFrame(columns=["clip", "embodiment", "frame", "stage", "reason_name"])
-    rank = {s: i for i, s in enumerate(STAGES)}
+    rank = {s: i for i, s in enumerate(stages)}
     rows = ledger[ledger["frame"] >= 0]
     clip_level = rows[rows["embodiment"] == ""]
     expanded = pd.concat([rows[rows["embodiment"] != ""],

@@ -32,13 +32,19 @@ import json
 import tarfile
 from dataclasses import asdict, dataclass
 
-import cv2
 import numpy as np
+
+from handedit.images import encode_png
 
 SAMPLE_FORMAT = 1
 MEMBERS = ("src.png", "gt.png", "composite.png", "human_mask.png", "robot_mask.png", "object_mask.png", "json")
 TARGET_SHARD_BYTES = 1 << 30
 PNG_RATIO = 0.5  # PNG size / raw size for camera frames (masks compress to almost nothing)
+
+
+def sample_key(clip: str, embodiment: str, frame: int) -> str:
+    """A pair's WebDataset key (no dots: WebDataset splits member names at the first)."""
+    return f"{clip}__{embodiment}__{int(frame):06d}".replace(".", "_")
 
 
 @dataclass(frozen=True)
@@ -61,8 +67,7 @@ class Pair:
 
     @property
     def key(self) -> str:
-        """The sample's WebDataset key (no dots: WebDataset splits member names at the first)."""
-        return f"{self.clip}__{self.embodiment}__{self.frame:06d}".replace(".", "_")
+        return sample_key(self.clip, self.embodiment, self.frame)
 
     def meta(self) -> dict:
         d = asdict(self)
@@ -102,16 +107,10 @@ def cut_parts(clips: list[tuple[str, int]], frames_per_part: int) -> dict[str, i
     return out
 
 
-def _png(image: np.ndarray) -> bytes:
-    a = np.asarray(image)
-    if a.dtype == bool:
-        a = a.astype(np.uint8) * 255
-    if a.ndim == 3:
-        a = cv2.cvtColor(a, cv2.COLOR_RGB2BGR)
-    ok, buf = cv2.imencode(".png", a)
-    if not ok:
-        raise ValueError("cannot PNG-encode an image")
-    return buf.tobytes()
+def union_sides(masks: np.ndarray, sides_all: list[str], sides) -> np.ndarray:
+    """(S,H,W) per-hand masks -> the union over the replaced ``sides`` (all when none match)."""
+    idx = [sides_all.index(s) for s in sides if s in sides_all] or list(range(len(sides_all)))
+    return np.asarray(masks)[idx].any(0)
 
 
 def sample_files(pair: Pair, src, gt, composite, human_mask, robot_mask, object_mask) -> list[tuple[str, bytes]]:
@@ -119,7 +118,7 @@ def sample_files(pair: Pair, src, gt, composite, human_mask, robot_mask, object_
     obj = object_mask if object_mask is not None else np.zeros(np.asarray(human_mask).shape, bool)
     meta = {**pair.meta(), "has_object": object_mask is not None, "format": SAMPLE_FORMAT}
     images = (src, gt, composite, human_mask, robot_mask, obj)
-    files = [(f"{pair.key}.{name}", _png(im)) for name, im in zip(MEMBERS[:-1], images)]
+    files = [(f"{pair.key}.{name}", encode_png(im)) for name, im in zip(MEMBERS[:-1], images)]
     return files + [(f"{pair.key}.json", json.dumps(meta, sort_keys=True).encode())]
 
 

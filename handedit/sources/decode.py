@@ -17,10 +17,8 @@ Every problem with the file itself raises ``SourceError`` naming the file and th
 
 from __future__ import annotations
 
-import hashlib
 import math
 from dataclasses import dataclass
-from functools import lru_cache
 from pathlib import Path
 
 import cv2
@@ -28,25 +26,9 @@ import numpy as np
 
 from handedit.sources.base import SourceError
 
-_HASH_BLOCK = 1 << 20
 _PTS_PROBE_FRAMES = 8  # frames decoded at open to check that timestamps give frame indices
 _MAX_CONSECUTIVE_FAILURES = 8  # failed grabs in a row that we read as end of stream
 _SEQUENTIAL_GAP = 48  # decode forward instead of seeking when the next read starts this close
-
-
-def file_sha256(path: Path) -> str:
-    """Content hash of a file, cached per process by (path, size, mtime)."""
-    st = Path(path).stat()
-    return _sha256(str(path), st.st_size, st.st_mtime_ns)
-
-
-@lru_cache(maxsize=256)
-def _sha256(path: str, size: int, mtime_ns: int) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(_HASH_BLOCK):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _fourcc(value: float) -> str:

@@ -39,7 +39,8 @@ import pydantic
 from handedit.camera import Intrinsics
 from handedit.keypoints import SIDES
 from handedit.sources.base import ClipChunk, ClipInfo, SourceError
-from handedit.sources.decode import VideoReader, file_sha256
+from handedit.digests import file_sha256
+from handedit.sources.decode import VideoReader
 
 NATIVE_SIZE = (1920, 1080)
 _FINGERS = ("Index", "Middle", "Ring", "Little")

@@ -21,7 +21,8 @@ import pydantic
 from handedit.camera import Intrinsics
 from handedit.keypoints import N_JOINTS, SIDES
 from handedit.sources.base import ClipChunk, ClipInfo, SourceError, no_keypoints
-from handedit.sources.decode import VideoReader, file_sha256
+from handedit.digests import file_sha256
+from handedit.sources.decode import VideoReader
 
 
 class VideoSpec(pydantic.BaseModel):

@@ -1,0 +1,24 @@
+"""PNG bytes <-> arrays, in the project's conventions (RGB/RGBA uint8; bool masks as 0/255)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    a = np.ascontiguousarray(image)
+    if a.dtype == bool:
+        a = a.astype(np.uint8) * 255
+    if a.ndim == 3:
+        a = cv2.cvtColor(a, cv2.COLOR_RGB2BGR if a.shape[2] == 3 else cv2.COLOR_RGBA2BGRA)
+    ok, buf = cv2.imencode(".png", a)
+    if not ok:
+        raise ValueError(f"cannot PNG-encode an array of shape {np.shape(image)}")
+    return buf.tobytes()
+
+
+def decode_rgb(data: bytes) -> np.ndarray | None:
+    """(H,W,3) uint8 RGB, or None when ``data`` is not a decodable image."""
+    a = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    return None if a is None else cv2.cvtColor(a, cv2.COLOR_BGR2RGB)
