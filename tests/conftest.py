@@ -16,7 +16,31 @@ os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
 os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "error")
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED = Path(os.environ.get("HANDEDIT_SHARED", REPO.parent / "shared"))
+
+
+def _shared_dir() -> Path:
+    """``$HANDEDIT_SHARED``, else ``shared/`` beside the repository, else (a clone of a local
+    checkout, e.g. ``git clone . /tmp/x``) beside the repository it was cloned from."""
+    if os.environ.get("HANDEDIT_SHARED"):
+        return Path(os.environ["HANDEDIT_SHARED"])
+    beside = REPO.parent / "shared"
+    if beside.exists():
+        return beside
+    import subprocess
+
+    try:
+        origin = subprocess.run(["git", "-C", str(REPO), "config", "--get", "remote.origin.url"], capture_output=True,
+                                text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        origin = ""
+    if origin and "://" not in origin and Path(origin).is_dir():
+        candidate = Path(origin).resolve().parent / "shared"
+        if candidate.exists():
+            return candidate
+    return beside
+
+
+SHARED = _shared_dir()
 
 
 def _need(path: Path, what: str) -> Path:

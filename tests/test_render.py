@@ -23,7 +23,9 @@ from handedit.render.model import joint_limits  # noqa: E402
 
 def _manifest_hands() -> list[str]:
     """Hand keys of the shared assets' manifest (read at collection time; it grows)."""
-    path = Path(os.environ.get("HANDEDIT_SHARED", Path(__file__).resolve().parents[2] / "shared")) / "assets/robots/manifest.json"
+    from conftest import SHARED
+
+    path = SHARED / "assets/robots/manifest.json"
     if not path.is_file():
         return []  # the robots_dir fixture then fails with what is missing
     return sorted(k for k, v in json.loads(path.read_text()).items() if v["kind"] == "hand")
