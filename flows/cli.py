@@ -294,11 +294,9 @@ def main(argv: list[str] | None = None) -> int:
 
     args = parser().parse_args(argv)
     prefect_defaults()
-    import prefect  # noqa: F401 - configures its log handlers, which the filter then covers
-
     from handedit.secrets import install_log_filter
 
-    install_log_filter()
+    install_log_filter()  # before any record is made, so every handler (Prefect's too) gets them redacted
     try:
         return int(args.func(args) or 0)
     except StoreError as exc:  # a damaged or unusable store, named down to the file: one message

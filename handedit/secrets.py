@@ -5,7 +5,7 @@ token: any of it can end up in ``records.jsonl``, provenance, the ledger or a te
 ``redact`` replaces every known secret value (the editor's and judge's configured keys,
 registered with ``register``, and the values of ``*_API_KEY``, ``*_TOKEN``, ``*_SECRET*``
 and ``*_PASSWORD`` environment variables) and any ``Authorization`` / ``Bearer`` value by
-``[redacted]``. ``install_log_filter`` applies it to every log record of the process.
+``[redacted]``. ``install_log_filter`` applies it to every log record the process creates.
 """
 
 from __future__ import annotations
@@ -63,20 +63,23 @@ def redact_obj(obj):
     return obj
 
 
-class RedactingFilter(logging.Filter):
-    def filter(self, record: logging.LogRecord) -> bool:
-        msg = record.getMessage()
+def install_log_filter() -> None:
+    """Redact every log record this process creates, whichever handler writes it, including
+    handlers configured later (Prefect's): a log-record factory, installed once."""
+    previous = logging.getLogRecordFactory()
+    if getattr(previous, "redacts", False):
+        return
+
+    def factory(*args, **kwargs) -> logging.LogRecord:
+        record = previous(*args, **kwargs)
+        try:
+            msg = record.getMessage()
+        except Exception:  # noqa: BLE001 - a malformed record is reported when it is emitted
+            return record
         clean = redact(msg)
         if clean != msg:
             record.msg, record.args = clean, None
-        return True
+        return record
 
-
-def install_log_filter() -> None:
-    """Redact every log record of this process, whichever handler writes it."""
-    f = RedactingFilter()
-    loggers = [logging.getLogger(), *(logging.getLogger(n) for n in list(logging.root.manager.loggerDict))]
-    for lg in loggers:
-        for h in getattr(lg, "handlers", []):
-            if not any(isinstance(x, RedactingFilter) for x in h.filters):
-                h.addFilter(f)
+    factory.redacts = True
+    logging.setLogRecordFactory(factory)
