@@ -14,6 +14,9 @@ os.environ.setdefault("PREFECT_HOME", tempfile.mkdtemp(prefix="handedit-prefect-
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
 os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "error")
+# A private cache: derived URDFs are rebuilt, and robots a developer fetched into the user
+# cache (which the roster searches by default) cannot make "missing asset" tests pass or fail.
+os.environ["HANDEDIT_CACHE_DIR"] = tempfile.mkdtemp(prefix="handedit-cache-")
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -48,8 +48,8 @@ def test_bank_build_errors_are_clear(tmp_path, capsys):
     out = tmp_path / "bank.zarr"
     assert main(["bank", "build", "--out", str(out), "--embodiment", "nope"]) == 2
     assert "unknown embodiment id 'nope'" in capsys.readouterr().err
-    assert main(["bank", "build", "--out", str(out), "--embodiment", "rohand"]) == 2
-    assert "rohand_right.urdf" in capsys.readouterr().err
+    assert main(["bank", "build", "--out", str(out), "--embodiment", "rh5dg2"]) == 2
+    assert "rh5dg2_right.urdf" in capsys.readouterr().err
     with pytest.raises(StoreError, match="does not exist.*bank build"):
         read_bank(tmp_path / "none.zarr", "leap")
 
@@ -57,10 +57,11 @@ def test_bank_build_errors_are_clear(tmp_path, capsys):
 def test_embodiments_list_cli(capsys):
     assert main(["embodiments", "list"]) == 0
     out = capsys.readouterr().out
-    lines = [l for l in out.splitlines() if l.split() and l.split()[0] in {"allegro", "ur5_shadow", "rohand", "panda_orca"}]
-    assert len(lines) == 4
+    lines = [l for l in out.splitlines() if l.split() and l.split()[0] in {"allegro", "ur5_shadow", "rohand", "rh5dg2", "panda_orca"}]
+    assert len(lines) == 5
     table = {l.split()[0]: l for l in lines}
     assert " 16 " in table["allegro"] and "hand " in table["allegro"]
     assert " 30 " in table["ur5_shadow"] and "hand_arm" in table["ur5_shadow"]
-    assert table["rohand"].rstrip().endswith("missing") and " 24 " in table["panda_orca"]
-    assert "22/26 embodiments available" in out
+    assert table["rh5dg2"].rstrip().endswith("missing") and " 24 " in table["panda_orca"]
+    assert " 6 " in table["rohand"]  # its 6 actuators, the 19 linkage joints derived
+    assert "24/26 embodiments available" in out

@@ -134,3 +134,32 @@ def test_bad_ee_link_is_clear(robots_dir):
                      "nope", np.eye(4))
     with pytest.raises(EmbodimentError, match="hand-only"):
         compose_embodiment("leap")
+
+
+@pytest.mark.parametrize("emb_id", ["panda_orca", "kuka_sharpa", "ur5_wuji", "jaka_zu7_dexhand021", "rm65_brainco",
+                                    "rm75_rohand"])
+def test_new_compositions_mount_the_hand_out_of_the_flange(emb_id):
+    """The flange-to-hand transform of each composition on the newer assets: the composed tree
+    carries it exactly, it is the documented rule (tool frame, adapter length along it, the
+    hand's own wrist calibration; a hand with its own wrist module meets the flange with its
+    root), and the hand points out of the flange: its fingertips lie ahead of the flange face."""
+    from handedit.keypoints import FINGERTIPS
+
+    emb = roster.get_embodiment(emb_id)
+    c = compose_embodiment(emb_id)
+    kin = c.kinematics()
+    q = kin.random_q(np.random.default_rng(2))
+    np.testing.assert_allclose(np.linalg.inv(kin.fk(q, c.ee_link)) @ kin.fk(q, c.hand_root), c.ee_from_hand_root, atol=1e-12)
+    arm_asset, hand_asset = roster.resolve_arm(emb).asset, roster.resolve_asset(emb).asset
+    ee_from_wrist = arm_asset.ee_from_tool_matrix @ emb.arm.tool_from_wrist_matrix
+    expected = ee_from_wrist @ hand_asset.wrist_from_root_matrix
+    if hand_asset.mount_at_root:
+        expected[:3, 3] = ee_from_wrist[:3, 3]
+    np.testing.assert_allclose(c.ee_from_hand_root, expected, atol=1e-12)
+    q[c.hand_slice] = get_kinematics(c.hand_urdf).neutral()
+    tool_from_ee = np.linalg.inv(arm_asset.ee_from_tool_matrix)
+    for kp in c.keypoints:
+        if kp.mano in FINGERTIPS:
+            T = tool_from_ee @ np.linalg.inv(kin.fk(q, c.ee_link)) @ kin.fk(q, kp.link)
+            assert (T[:3, :3] @ np.asarray(kp.offset) + T[:3, 3])[2] > 0.04, (emb_id, kp.link)
+

@@ -25,7 +25,8 @@ from handedit.embodiments import (
 from handedit.embodiments.kinematics import get_kinematics
 from handedit.keypoints import FINGERTIPS
 
-HAND_IDS = ["allegro", "shadow", "leap", "inspire", "ability", "schunk_svh", "orca", "revo2", "sharpa", "wuji", "dexhand021"]
+HAND_IDS = ["allegro", "shadow", "leap", "inspire", "ability", "schunk_svh", "orca", "revo2", "sharpa", "wuji", "dexhand021",
+            "rohand"]
 
 
 @pytest.fixture
@@ -68,15 +69,15 @@ def test_names_and_descriptions_verbatim_from_paper(shared_dir):
 def test_missing_assets_name_what_to_provide(assets):
     from handedit.embodiments import asset_status
 
-    ok, msg = asset_status(get_embodiment("rohand"))
-    assert not ok and "hands/rohand/rohand_right.urdf" in msg and "HANDEDIT_ASSET_DIRS" in msg
-    with pytest.raises(AssetsMissing, match="rohand_right.urdf"):
-        describe_embodiment("rm75_rohand")
+    ok, msg = asset_status(get_embodiment("rh5dg2"))
+    assert not ok and "hands/inspire_rh5dg2/rh5dg2_right.urdf" in msg and "HANDEDIT_ASSET_DIRS" in msg
+    with pytest.raises(AssetsMissing, match="rh5dg2_right.urdf"):
+        describe_embodiment("ur5_rh5dg2")
     available = [e.id for e in list_embodiments() if asset_status(e)[0]]
     assert set(HAND_IDS) <= set(available)
     assert {"ur5_shadow", "xarm_ability", "xarm_leap", "panda_allegro", "ur5_inspire", "ur5_schunk_svh",
-            "panda_orca", "kuka_sharpa", "ur5_wuji", "jaka_zu7_dexhand021", "rm65_brainco"} <= set(available)
-    assert len(available) == 22  # all but rohand, rm75_rohand (its coupling) and rh5dg2, ur5_rh5dg2 (no meshes)
+            "panda_orca", "kuka_sharpa", "ur5_wuji", "jaka_zu7_dexhand021", "rm65_brainco", "rm75_rohand"} <= set(available)
+    assert len(available) == 24  # all but rh5dg2 and ur5_rh5dg2 (its meshes are not public)
 
 
 def test_hand_arm_describe_arm_joints_first(assets):
@@ -203,3 +204,48 @@ def test_dexhand021_couplings_and_debug_visuals_are_derived(assets, monkeypatch,
     assert len(hidden) == 10 and all(l.find("visual") is None for l in hidden)
     raw_links = etree.parse(str(raw)).getroot().findall("link")
     assert sum(l.find("visual") is not None for l in raw_links if re.fullmatch(r"r_f_link\d_(tip|pad)", l.get("name"))) == 10
+
+
+def test_rohand_linkages_close_over_the_actuator_range(assets, monkeypatch, tmp_path):
+    """RoHand's open-tree URDF (25 joints) becomes a 6-actuator hand whose 19 passive joints are
+    polynomial mimics of their slider; over each actuator's range, every pin of the slider-cranks
+    and four-bars meets itself through both branches (and the thumb's unmodelled rod keeps its
+    length), while the straight-line mimics alone (what plain URDF tools apply) leave them open.
+    FK of the casadi kinematics and of yourdfpy (with the polynomials applied) agree to 1e-9."""
+    import yourdfpy
+
+    from handedit.embodiments.kinematics import Kinematics
+    from handedit.embodiments.linkage import closure_gaps, poly_mimics, solve, update_cfg
+
+    monkeypatch.setenv("HANDEDIT_CACHE_DIR", str(tmp_path))
+    ra = resolve_asset(get_embodiment("rohand"))
+    kin, tree = get_kinematics(ra.path), Kinematics(ra.origin)
+    assert tree.dof == 25 and kin.dof == 6
+    assert kin.joint_names == ["if_slider_link", "mf_slider_link", "rf_slider_link", "lf_slider_link", "th_root_link",
+                               "th_slider_link"]
+    polys = poly_mimics(ra.path)
+    assert len(polys) == 19
+    u = yourdfpy.URDF.load(str(ra.path), load_meshes=False)
+    worst_line = 0.0
+    for lk in ra.asset.linkages:
+        a = kin.joint_names.index(lk.actuator)
+        xs = np.linspace(kin.lower[a], kin.upper[a], 25)
+        exact = solve(tree, lk, xs)
+        for x, row in zip(xs, exact):
+            q = np.zeros(tree.dof)
+            q[tree.joint_names.index(lk.actuator)] = x
+            line = q.copy()
+            for j, v in zip(lk.passive, row):
+                q[tree.joint_names.index(j)] = float(polys[j](x))
+                m = u.joint_map[j].mimic
+                line[tree.joint_names.index(j)] = m.multiplier * x + m.offset
+            assert closure_gaps(tree, lk, q).max() < 5e-6, (lk.actuator, x)
+            worst_line = max(worst_line, closure_gaps(tree, lk, line).max())
+        assert np.ptp(exact[:, lk.passive.index(lk.passive[-1])]) > 0.3  # the linkage moves its joints
+    assert worst_line > 1e-4
+    rng = np.random.default_rng(3)
+    for _ in range(4):
+        q = rng.uniform(kin.lower, kin.upper)
+        update_cfg(u, q, polys)
+        for link in ("if_distal_link", "if_connecting_link", "lf_slider_abpart_link", "th_distal_link", "th_connecting_link"):
+            np.testing.assert_allclose(u.get_transform(link, u.base_link), kin.fk(q, link), atol=1e-9)

@@ -295,8 +295,9 @@ def test_render_embodiment_uses_roster(robots_dir, monkeypatch):
 
 
 HAND_ARMS = ["panda_allegro", "ur5_inspire", "ur5_schunk_svh", "ur5_shadow", "xarm_ability", "xarm_leap",
-             "panda_orca", "kuka_sharpa", "ur5_wuji", "jaka_zu7_dexhand021", "rm65_brainco"]
-NEW_HANDS = ["orca", "revo2", "sharpa", "wuji", "dexhand021"]  # hands wired from the assets' newer robots
+             "panda_orca", "kuka_sharpa", "ur5_wuji", "jaka_zu7_dexhand021", "rm65_brainco",
+             "rm75_rohand"]
+NEW_HANDS = ["orca", "revo2", "sharpa", "wuji", "dexhand021", "rohand"]  # hands wired from the assets' newer robots
 
 
 @pytest.mark.parametrize("emb_id", HAND_ARMS + ["leap"] + NEW_HANDS)

@@ -5,7 +5,9 @@ are mechanically coupled to the proximal ones but independent in its URDF, and t
 carries debug visuals (tip spheres, pad boxes). A ``UrdfAsset`` states the fixes as data
 (``couplings``: (joint, source joint, multiplier, offset), written as URDF ``<mimic>``
 tags, which yourdfpy, the renderer and the casadi kinematics all honour; ``hidden_visuals``:
-a link-name regex whose ``<visual>`` elements are dropped). The derived file lives in
+a link-name regex whose ``<visual>`` elements are dropped; ``linkages``: closed loops the
+tree leaves open, solved into polynomial mimics by ``handedit.embodiments.linkage``). The
+derived file lives in
 ``$HANDEDIT_CACHE_DIR/derived`` (mesh paths made absolute), named by a digest of its
 inputs, written atomically, so concurrent workers agree on it.
 """
@@ -20,11 +22,12 @@ from pathlib import Path
 
 from lxml import etree
 
+from handedit.embodiments import linkage
 from handedit.embodiments.errors import EmbodimentError
 
 
 def needs_derivation(asset) -> bool:
-    return bool(getattr(asset, "couplings", ()) or getattr(asset, "hidden_visuals", ""))
+    return bool(getattr(asset, "couplings", ()) or getattr(asset, "hidden_visuals", "") or getattr(asset, "linkages", ()))
 
 
 def derived_urdf(path: Path, asset) -> Path:
@@ -34,7 +37,8 @@ def derived_urdf(path: Path, asset) -> Path:
     from handedit.embodiments.compose import _absolutize_meshes, _cache_dir, _parse
 
     st = path.stat()
-    key = hashlib.blake2b(repr((str(path), st.st_size, st.st_mtime_ns, asset.couplings, asset.hidden_visuals)).encode(),
+    key = hashlib.blake2b(repr((str(path), st.st_size, st.st_mtime_ns, asset.couplings, asset.hidden_visuals,
+                              asset.linkages, linkage.POLY_DEGREE)).encode(),
                           digest_size=8).hexdigest()
     out = _cache_dir().parent / "derived" / f"{path.stem}-{key}.urdf"
     if out.is_file():
@@ -50,6 +54,20 @@ def derived_urdf(path: Path, asset) -> Path:
         for old in j.findall("mimic"):
             j.remove(old)
         etree.SubElement(j, "mimic", joint=source, multiplier=repr(float(multiplier)), offset=repr(float(offset)))
+    if asset.linkages:
+        from handedit.embodiments.kinematics import Kinematics
+
+        open_tree = Kinematics(path)  # every joint a column: the loops are solved on it
+        for lk in asset.linkages:
+            missing = [n for n in (lk.actuator, *lk.passive) if n not in joints]
+            if missing:
+                raise EmbodimentError(f"URDF {path}: linkage of {lk.actuator}: no joint(s) {missing}; joints: {sorted(joints)}")
+            for name, (poly, multiplier, offset) in linkage.fit(open_tree, lk).items():
+                j = joints[name]
+                for old in j.findall("mimic"):
+                    j.remove(old)
+                etree.SubElement(j, "mimic", joint=lk.actuator, multiplier=repr(multiplier), offset=repr(offset),
+                                 **{linkage.POLY_ATTR: poly.attr()})
     if asset.hidden_visuals:
         pattern = re.compile(asset.hidden_visuals)
         for link in root.findall("link"):

@@ -3,7 +3,8 @@
 The retargeter differentiates FK inside IPOPT, so FK is a casadi expression of the
 actuated joint vector ``q`` whose column order is ``yourdfpy.URDF.actuated_joint_names``:
 that order is the qpos column order of the whole project. Mimic joints are derived
-(``multiplier * q[src] + offset``), never columns of qpos.
+(``multiplier * q[src] + offset``, or the polynomial of ``handedit.embodiments.linkage``
+where the derived URDF carries one), never columns of qpos.
 
 Joint limits: revolute/prismatic use the URDF <limit>; continuous joints get +-inf in
 ``lower``/``upper`` (the solver bound) and +-pi in ``sample_lower``/``sample_upper``.
@@ -20,6 +21,7 @@ import casadi as ca
 import numpy as np
 
 from handedit.embodiments.errors import BrokenUrdf
+from handedit.embodiments.linkage import poly_mimics
 from handedit.embodiments.urdf import load_urdf
 
 _MOVABLE = ("revolute", "continuous", "prismatic")
@@ -66,6 +68,7 @@ class Kinematics:
                 lower[idx[j.name]] = -np.inf if lo is None else float(lo)
                 upper[idx[j.name]] = np.inf if hi is None else float(hi)
         self._by_name = {j.name: j for j in self._joints.values()}
+        self._polys = poly_mimics(self.urdf_path)
         self.lower, self.upper = lower, upper
         self.sample_lower = np.where(np.isfinite(lower), lower, -np.pi)
         self.sample_upper = np.where(np.isfinite(upper), upper, np.pi)
@@ -79,6 +82,8 @@ class Kinematics:
             src = self._by_name.get(j.mimic[0])
             if src is None or depth > 16:
                 return ca.SX(j.mimic[2])  # yourdfpy: non-actuated source -> 0 + offset
+            if j.name in self._polys:
+                return self._polys[j.name](self._joint_value(src, q, depth + 1))
             return j.mimic[1] * self._joint_value(src, q, depth + 1) + j.mimic[2]
         return q[j.q_index] if j.q_index >= 0 else ca.SX(0.0)
 

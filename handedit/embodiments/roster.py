@@ -28,6 +28,8 @@ from typing import Literal
 import numpy as np
 
 from handedit.embodiments.errors import AssetsMissing, EmbodimentError
+from handedit.embodiments.linkage import Linkage, Loop
+from handedit.keypoints import FINGERS
 
 ASSET_DIRS_ENV = "HANDEDIT_ASSET_DIRS"
 RGBA = tuple[float, float, float, float]
@@ -67,6 +69,7 @@ class UrdfAsset:
     # offset) couplings written as <mimic>, and a link regex whose visuals are not the robot's
     couplings: tuple[tuple[str, str, float, float], ...] = ()
     hidden_visuals: str = ""
+    linkages: tuple[Linkage, ...] = ()  # closed loops solved into polynomial mimics
 
     @property
     def wrist_from_root_matrix(self) -> np.ndarray:
@@ -164,8 +167,6 @@ class ResolvedAsset:
 
 def _fingers(spec: dict[str, tuple[str | None, ...]], offsets: dict[str, tuple[float, float, float]] | None = None):
     """Correspondences from {finger: (mcp|cmc, pip|mcp, dip|ip, tip)} link names (None: absent)."""
-    from handedit.keypoints import FINGERS
-
     offsets = offsets or {}
     out = []
     for finger, links in spec.items():
@@ -364,7 +365,64 @@ _ORCA = UrdfAsset(
     mount_at_root=True,  # its tower (the wrist module, 15 cm below the palm) is what meets an arm
 )
 _RH5DG2 = _expected_hand("inspire_rh5dg2", "rh5dg2_right.urdf")
-_ROHAND = _expected_hand("rohand", "rohand_right.urdf")
+
+# OYMotion RoHand (oymotion/rohand_urdf_ros2): the URDF is an open tree of 25 joints; the
+# real hand has 6 (a linear actuator per digit, and the thumb's rotation). Each finger's slider
+# drives a slider-crank (rod ``slider_abpart`` pinned to the proximal phalanx at pin C) and a
+# four-bar (``connecting`` link pinned to the distal phalanx at pin E); the thumb's slider, in
+# its proximal phalanx, turns it about the thumb root through a short rod the URDF does not
+# model (A on the root, B on the slider) and drives the distal phalanx through the
+# ``connecting`` link (pin D). Pivots are the URDF's joint origins; link lengths (mm) are the
+# vendor's calibration table (FingerMathURDF.py: L_AC, L_OC, L_BE, L_DE per finger; L_OA,
+# L_AB, L_BP0, L_OP, L_CD, L_ED for the thumb), which also fixes each circle intersection's
+# branch (the assembled one: its closed-loop curves agree with the vendor's to <= 0.006 rad
+# for the proximal and distal joints; the vendor's connecting-link angle differs by up to
+# 0.12 rad, and the loop closes only with ours). B is L_BP0 along the slider and L_OP across
+# from the proximal pivot, in the slider frame.
+def _rohand_finger(f: str, l_ac: float, l_oc: float, l_be: float, l_de: float) -> Linkage:
+    return Linkage(
+        actuator=f"{f}_slider_link",
+        passive=(f"{f}_slider_abpart_link", f"{f}_proximal_link", f"{f}_distal_link", f"{f}_connecting_link"),
+        loops=(
+            Loop(f"{f}_slider_abpart_link", f"{f}_slider_abpart_link", l_ac / 1e3, f"{f}_proximal_link", f"{f}_proximal_link", l_oc / 1e3),
+            Loop(f"{f}_connecting_link", f"{f}_connecting_link", l_be / 1e3, f"{f}_distal_link", f"{f}_distal_link", l_de / 1e3),
+        ),
+    )
+
+
+_ROHAND_LINKAGES = (
+    _rohand_finger("if", 19.63, 14.25, 34.14, 7.69),
+    _rohand_finger("mf", 19.63, 14.31, 39.48, 7.69),
+    _rohand_finger("rf", 19.63, 14.25, 34.14, 7.69),
+    _rohand_finger("lf", 19.63, 14.27, 30.85, 7.53),
+    Linkage(
+        actuator="th_slider_link",
+        passive=("th_proximal_link", "th_connecting_link", "th_distal_link"),
+        loops=(
+            Loop("th_root_link", "th_proximal_link", 10.00e-3, "th_slider_link", "th_proximal_link", 0.0, branch=-1,
+                 length=10.98e-3, b_point=(-1.598e-3, -1.529e-3, 0.018e-3)),
+            Loop("th_connecting_link", "th_connecting_link", 9.90e-3, "th_distal_link", "th_distal_link", 11.30e-3, branch=-1),
+        ),
+    ),
+)
+_ROHAND_TIPS = {"if": (-0.0291, 0.0, -0.0410), "mf": (-0.0296, 0.0, -0.0406), "rf": (-0.0262, 0.0, -0.0429),
+                "lf": (-0.0182, 0.0, -0.0306), "th": (0.0230, -0.0152, -0.0024)}  # the distal meshes' far ends
+_ROHAND = UrdfAsset(
+    source="asset_dir",
+    path="hands/rohand/urdf/rohand_right_rel.urdf",
+    keypoints=(_wrist("base_link", (-0.02, 0.0, 0.0)),)
+    + _fingers({
+        "thumb": ("th_root_link", "th_proximal_link", "th_distal_link", None),
+        "index": ("if_proximal_link", "if_distal_link", None, None),
+        "middle": ("mf_proximal_link", "mf_distal_link", None, None),
+        "ring": ("rf_proximal_link", "rf_distal_link", None, None),
+        "pinky": ("lf_proximal_link", "lf_distal_link", None, None),
+    })
+    + tuple(KeypointLink(FINGERS[finger][-1], f"{f}_distal_link", "tip", _ROHAND_TIPS[f])
+            for finger, f in (("thumb", "th"), ("index", "if"), ("middle", "mf"), ("ring", "rf"), ("pinky", "lf"))),
+    wrist_from_root=_T([[-0.03447, 0.01836, -0.99924, -0.00069], [0.10771, -0.99394, -0.02198, 0.00215], [-0.99358, -0.10839, 0.03228, -0.01987], [0, 0, 0, 1]]),
+    linkages=_ROHAND_LINKAGES,
+)
 # Sharpa Wave (sharpa-robotics/sharpa-urdf-usd-xml, wave_01): 22 joints; MCP flexion and
 # abduction are two joints at one point (the *_MCP_VL link), the pinky adds a CMC.
 _SHARPA = UrdfAsset(
@@ -776,8 +834,13 @@ def get_embodiment(embodiment_id: str) -> Embodiment:
 
 
 def asset_dirs() -> list[Path]:
+    """$HANDEDIT_ASSET_DIRS, then the folder ``handedit assets fetch`` fills by default."""
+    from handedit.embodiments.fetch import default_dest
+
     raw = os.environ.get(ASSET_DIRS_ENV, "")
-    return [Path(p).expanduser() for p in raw.split(os.pathsep) if p.strip()]
+    dirs = [Path(p).expanduser() for p in raw.split(os.pathsep) if p.strip()]
+    fetched = default_dest()
+    return dirs + [fetched] if fetched.is_dir() and fetched not in dirs else dirs
 
 
 def _package_file(dist_name: str, rel: str) -> Path | None:
@@ -813,8 +876,9 @@ def _search(spec_assets, what: str, emb: Embodiment):
         f"no {what} URDF found for embodiment '{emb.id}' ({emb.name}). Provide "
         + " or ".join(wanted)
         + f". ${ASSET_DIRS_ENV} is currently {env!r} (searched: {[str(d) for d in dirs]}); "
-        "point it (os.pathsep-separated) at a folder in dex-urdf layout (hands/, arms/, assembly/), "
-        "e.g. a checkout of https://github.com/dexsuite/dex-urdf."
+        "run `handedit assets fetch` (downloads the public robots into the user cache, searched by "
+        "default), or point it (os.pathsep-separated) at a folder in dex-urdf layout (hands/, arms/, "
+        "assembly/), e.g. a checkout of https://github.com/dexsuite/dex-urdf."
     )
 
 

@@ -19,6 +19,7 @@ import numpy as np  # noqa: E402
 import pyrender  # noqa: E402
 
 from handedit.camera import CV_TO_GL, Intrinsics  # noqa: E402
+from handedit.embodiments.linkage import poly_mimics, update_cfg  # noqa: E402
 from handedit.render.gl import make_offscreen  # noqa: E402
 from handedit.render.model import Rgba, RobotModel, build_model  # noqa: E402
 
@@ -101,6 +102,7 @@ class RobotRenderer:
         self.model: RobotModel = build_model(self.urdf_path, materials=materials, decimate=decimate)
         self.urdf = self.model.urdf
         self.joint_names: list[str] = list(self.urdf.actuated_joint_names)
+        self._polys = poly_mimics(self.urdf_path)
         self._base = self.urdf.base_link
         self._thread = threading.get_ident()
 
@@ -142,7 +144,7 @@ class RobotRenderer:
 
     def link_transforms(self, q: np.ndarray) -> dict[str, np.ndarray]:
         """root_link_from_link (4x4) for every link with visual geometry at configuration ``q``."""
-        self.urdf.update_cfg(np.asarray(q, dtype=float))
+        update_cfg(self.urdf, q, self._polys)
         return {link: self.urdf.get_transform(link, self._base) for link in self._link_nodes}
 
     def points(self, q: np.ndarray, per_part: int = 400) -> np.ndarray:
