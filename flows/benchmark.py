@@ -367,7 +367,12 @@ def write_report(bench: str | Path, editors: list[str] | None = None) -> dict[st
     names = editors or found
     if not names:
         raise BenchIOError(f"no results under {results}; run `handedit bench evaluate` first")
-    summaries = {n: read_json(out.results(n) / "summary.json") for n in names}
+
+    def project_summary(name: str) -> dict:  # a toolkit-protocol run keeps the report's shape beside the toolkit's
+        folder = out.results(name)
+        return read_json(folder / "report_summary.json" if (folder / "report_summary.json").is_file() else folder / "summary.json")
+
+    summaries = {n: project_summary(n) for n in names}
     written: dict[str, list[Path]] = {}
     md_all = []
     for scope, title in TRACK_NAMES.items():

@@ -11,6 +11,7 @@ per-item errors in ``items.csv`` / ``summary.json``; everything else is scored.
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -33,6 +34,7 @@ from handedit.storage.store import now_iso
 from handedit.tasks.evaluate import EvalJob, evaluate_chunk
 
 ITEMS_CSV, SUMMARY_JSON = "items.csv", "summary.json"
+REPORT_SUMMARY_JSON = "report_summary.json"  # toolkit protocol: the paper protocol's summary shape, same numbers
 
 
 class EvaluateConfig(BaseModel):
@@ -47,6 +49,9 @@ class EvaluateConfig(BaseModel):
     judge: JudgeConfig | None = None
     embodied: EmbodiedConfig = EmbodiedConfig()
     chunk_size: int = Field(16, ge=1, description="items per task")
+    protocol: Literal["toolkit", "paper"] = Field(
+        "toolkit", description="toolkit: every metric as the authors' toolkit computes it (published numbers); "
+                               "paper: this project's reading of the paper's equations")
     cluster: ClusterConfig = ClusterConfig()
 
 
@@ -64,8 +69,11 @@ def evaluate(cfg: EvaluateConfig) -> dict:
         skipped += ["vlm_sc", "vlm_pq", "vlm"]
         logger.error("no VLM judge configured (HANDEDIT_VLM_BASE_URL): skipping the VLM judge")
     records = [it.to_record() for it in items]
+    if cfg.protocol == "toolkit":
+        _attach_reference_bank(items, records)
     chunks = [records[i:i + cfg.chunk_size] for i in range(0, len(records), cfg.chunk_size)]
-    futures = [evaluate_chunk.submit(EvalJob(k, c, str(cfg.model_dir) if cfg.model_dir else None, cfg.judge, cfg.embodied))
+    model_dir = str(cfg.model_dir) if cfg.model_dir else None
+    futures = [evaluate_chunk.submit(EvalJob(k, c, model_dir, cfg.judge, cfg.embodied, cfg.protocol))
                for k, c in enumerate(chunks)]
     rows, feats = [], {}
     for k, fut in enumerate(futures):
@@ -78,6 +86,8 @@ def evaluate(cfg: EvaluateConfig) -> dict:
                 rows.append({"id": rec["id"], "track": rec["replacement_scope"], "error": f"chunk failed: {res}"})
     for e in line_errors:
         rows.append({"id": e["id"] or f"line-{e['line']}", "track": None, "error": e["error"]})
+    if cfg.protocol == "toolkit":
+        return _write_toolkit(cfg, records, rows, feats, skipped, line_errors, logger)
     summary = summarise(rows, feats, cfg.editor, skipped)
     summary.update(manifest=str(cfg.manifest), finished=now_iso(), n_manifest_errors=len(line_errors))
     cfg.out.mkdir(parents=True, exist_ok=True)
@@ -88,6 +98,54 @@ def evaluate(cfg: EvaluateConfig) -> dict:
     write_json(cfg.out / SUMMARY_JSON, summary)
     n_err = sum(1 for r in rows if r.get("error"))
     logger.info("%s: %d items scored, %d errors", cfg.editor, len(rows) - n_err, n_err)
+    return summary
+
+
+def _attach_reference_bank(items: list, records: list[dict]) -> None:
+    """The toolkit's per-target reference bank: an item without reference views of its own
+    uses every view any item of the same target lists (its ``_build_target_reference_bank``)."""
+    bank: dict[tuple[str, str], list[list[str]]] = {}
+    for it in items:
+        key = (it.replacement_scope, it.embodiment or it.target_name)
+        for ref, mask in zip(it.urdf_ref_paths, it.urdf_mask_paths + [""] * len(it.urdf_ref_paths)):
+            if [ref, mask] not in bank.setdefault(key, []):
+                bank[key].append([ref, mask])
+    for it, rec in zip(items, records):
+        if not it.urdf_ref_paths:
+            rec["toolkit_refs"] = bank.get((it.replacement_scope, it.embodiment or it.target_name), [])
+
+
+def _write_toolkit(cfg: "EvaluateConfig", records: list[dict], rows: list[dict], feats: dict, skipped: list[str],
+                   line_errors: list[dict], logger) -> dict:
+    """per_sample.jsonl/.csv, summary.json, leaderboard.csv/.md as the toolkit writes them, and
+    report_summary.json (the paper protocol's shape, from the same numbers) for ``bench report``."""
+    from handedit.benchmark import toolkit_report as tr
+    from handedit.metrics.toolkit import NEURAL, frechet_distance_cleanfid
+
+    by_id = {r["id"]: r for r in records}
+    table = [tr.per_sample_row(r, by_id.get(r["id"], {"id": r["id"]})) for r in rows]
+    ok = [r["id"] for r in rows if not r.get("error")]
+    summary = tr.summarize(table, tr.pooled_fid(feats, ok, frechet_distance_cleanfid), cfg.editor)
+    skipped_cols = sorted({c for name, cols in NEURAL.items() if name in missing_encoders(cfg.model_dir) for c in cols}
+                          | ({"VLM-SC", "VLM-PQ", "VLM"} if cfg.judge is None else set()))
+    errors = [{"id": r["id"], "error": r["error"]} for r in rows if r.get("error")]
+    summary["_meta"].update(protocol="toolkit", editor=cfg.editor, manifest=str(cfg.manifest), finished=now_iso(),
+                            skipped=skipped_cols, n_items=len(rows), n_errors=len(errors), errors=errors,
+                            n_manifest_errors=len(line_errors),
+                            vlm_protocol="paper (the judge of handedit.metrics.vlm)" if cfg.judge else "none")
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    write_text(cfg.out / "per_sample.jsonl", tr.to_jsonl(table))
+    write_text(cfg.out / "per_sample.csv", tr.to_csv(table))
+    write_text(cfg.out / SUMMARY_JSON, json.dumps(summary, ensure_ascii=False, indent=2, default=str) + "\n")
+    board_csv, board_md = tr.leaderboard(summary)
+    write_text(cfg.out / "leaderboard.csv", board_csv)
+    write_text(cfg.out / "leaderboard.md", board_md)
+    project = summarise(tr.project_rows(table), feats, cfg.editor, skipped)
+    project.update(protocol="toolkit", manifest=str(cfg.manifest), finished=now_iso(), n_manifest_errors=len(line_errors))
+    write_json(cfg.out / REPORT_SUMMARY_JSON, project)
+    for col in skipped_cols:
+        logger.error("toolkit protocol: %s left empty (its encoder or judge is missing)", col)
+    logger.info("%s: %d items scored, %d errors (toolkit protocol)", cfg.editor, len(rows) - len(errors), len(errors))
     return summary
 
 

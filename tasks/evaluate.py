@@ -18,9 +18,11 @@ from prefect.cache_policies import NO_CACHE
 
 from handedit.benchmark.manifest import ManifestItem
 from handedit.benchmark.testset import instruction_for_target
+from handedit.metrics import toolkit
 from handedit.metrics.embodied import EmbodiedConfig
 from handedit.metrics.encoders import Encoders, load_encoders
 from handedit.metrics.suite import ItemImages, item_images, score_item
+from handedit.metrics.toolkit import Sample
 from handedit.metrics.vlm import JudgeConfig, VlmJudge
 from handedit.storage.benchmark import read_image, read_mask
 from handedit.tasks.common import RETRIES, RETRY_DELAYS, retry_transient
@@ -33,11 +35,17 @@ class EvalJob:
     model_dir: str | None
     judge: JudgeConfig | None
     embodied: EmbodiedConfig
+    protocol: str = "toolkit"  # "toolkit" (handedit.metrics.toolkit) or "paper" (handedit.metrics.suite)
 
 
 @lru_cache(maxsize=4)
 def _encoders(model_dir: str | None) -> Encoders:
     return load_encoders(model_dir)  # once per worker process
+
+
+@lru_cache(maxsize=4)
+def _neural(model_dir: str | None) -> toolkit.Neural:
+    return toolkit.Neural(_encoders(model_dir))  # its reference-embedding cache lives with the worker
 
 
 def load_item(it: ManifestItem) -> tuple[ItemImages, str]:
@@ -56,6 +64,35 @@ def load_item(it: ManifestItem) -> tuple[ItemImages, str]:
     )
 
 
+def toolkit_sample(it: ManifestItem) -> Sample:
+    """The item's files for the toolkit protocol; reference views: the item's own, else its
+    target's views collected over the manifest (``toolkit_refs``, set by the flow)."""
+    refs = list(zip(it.urdf_ref_paths, it.urdf_mask_paths + [""] * len(it.urdf_ref_paths)))
+    return Sample(id=it.id, pred_path=it.pred_path, src_path=it.src_path, gt_path=it.gt_path,
+                  human_mask_path=it.human_mask_path, robot_mask_path=it.robot_mask_path, bg_mask_path=it.bg_mask_path,
+                  object_mask_path=it.object_mask_path, test_mask_path=it.test_mask_path, gt_mask_path=it.gt_mask_path,
+                  refs=refs or [tuple(r) for r in it.extra.get("toolkit_refs", [])])
+
+
+def _score(job: EvalJob, it: ManifestItem, enc: Encoders, row: dict) -> tuple[dict, tuple | None]:
+    """One item's metrics under the job's protocol, into ``row``; (FID features, the judge's
+    (source, prediction, reference) or None without a judge)."""
+    if job.protocol == "toolkit":
+        metrics, f = toolkit.score_sample(toolkit_sample(it), _neural(job.model_dir))
+        if metrics.get("error"):
+            raise FileNotFoundError(metrics.pop("error"))
+        row.update(metrics)
+        if job.judge is None:
+            return f, None
+        refs = it.urdf_ref_paths[:1]
+        return f, (read_image(it.src_path), read_image(it.pred_path), read_image(refs[0]) if refs else None)
+    images, disabled = load_item(it)
+    metrics, f = score_item(images, enc, job.embodied)
+    row.update(metrics)
+    row["disabled"] = disabled
+    return f, (images.src, images.pred, images.refs[0] if images.refs else None)
+
+
 def body(job: EvalJob) -> dict:
     enc = _encoders(job.model_dir)
     judge = VlmJudge(job.judge) if job.judge else None
@@ -69,16 +106,12 @@ def body(job: EvalJob) -> dict:
                    "dataset": it.extra.get("dataset", ""), "task": it.extra.get("task", "")}
             t0 = time.monotonic()
             try:
-                images, disabled = load_item(it)
-                metrics, f = score_item(images, enc, job.embodied)
-                row.update(metrics)
-                row["disabled"] = disabled
+                f, judged = _score(job, it, enc, row)
                 if f:
                     feats[it.id] = f
-                if pool is not None:
-                    ref = images.refs[0] if images.refs else None
+                if pool is not None and judged is not None:
                     text = it.instruction or instruction_for_target(it.replacement_scope, it.target_name)
-                    pending.append((row, pool.submit(judge.judge, images.src, images.pred, ref, text)))
+                    pending.append((row, pool.submit(judge.judge, *judged, text)))
             except Exception as exc:  # per-item error row; the chunk continues
                 row["error"] = f"{type(exc).__name__}: {exc}"
             row["seconds"] = time.monotonic() - t0
@@ -89,7 +122,8 @@ def body(job: EvalJob) -> dict:
     finally:
         if pool is not None:
             pool.shutdown(wait=True)
-    rows = [{k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in r.items()} for r in rows]
+    if job.protocol != "toolkit":  # the toolkit writes NaN, as its per_sample.jsonl does
+        rows = [{k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in r.items()} for r in rows]
     return {"chunk": job.chunk, "rows": rows, "features": feats}
 
 

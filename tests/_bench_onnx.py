@@ -56,12 +56,15 @@ def lpips_backbone(path: Path) -> Path:
     return _save(helper.make_graph(nodes, "lpips", [x], outs, init), path)
 
 
-def write_encoders(folder: Path, skip: tuple[str, ...] = ()) -> Path:
+TOOLKIT_SIZES = {"dinov2": 224, "clip": 224, "inception": 299}  # what the toolkit protocol feeds
+
+
+def write_encoders(folder: Path, skip: tuple[str, ...] = (), sizes: dict[str, int] | None = None) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     names = {"dinov2": "dinov2.onnx", "clip": "clip_image.onnx", "inception": "inception.onnx"}
     for name, fname in names.items():
         if name not in skip:
-            embedder(folder / fname, EMB_W[name])
+            embedder(folder / fname, EMB_W[name], (sizes or {}).get(name, 32))
     if "lpips" not in skip:
         lpips_backbone(folder / "lpips_backbone.onnx")
         np.savez(folder / "lpips_heads.npz", lin0=LP_HEADS[0], lin1=LP_HEADS[1])

@@ -16,7 +16,7 @@ import shutil
 import numpy as np
 import pytest
 
-from _bench_onnx import write_encoders
+from _bench_onnx import TOOLKIT_SIZES, write_encoders
 from _fake_openai import FakeOpenAI
 from handedit.flows.benchmark import build_testset, editor_cost, export_manifest, load_manifest, run_editor, write_report
 from handedit.flows.config import ClusterConfig, CurateConfig
@@ -140,7 +140,7 @@ def scored(bench):
         for name in ("copy", "oracle"):
             out = BenchDir(d).results(name)
             manifest = export_manifest(d, name, out / "manifest.jsonl")
-            cfg = EvaluateConfig(manifest=manifest, out=out, editor=name, model_dir=bench["models"], judge=judge,
+            cfg = EvaluateConfig(manifest=manifest, out=out, editor=name, model_dir=bench["models"], judge=judge, protocol="paper",
                                  chunk_size=2, cluster=ClusterConfig(address=bench["cluster"].scheduler_address))
             summaries[name] = run_evaluate(cfg)
         n_chat = sum(r["kind"] == "chat" for r in server.requests)
@@ -192,7 +192,7 @@ def test_per_item_errors_while_the_rest_is_scored(bench, scored):
     write_image(broken / "preds" / f"{recs[1]['id']}.png", small)  # wrong size
     text = "\n".join(json.dumps(r) for r in recs) + '\n{"id": "truncated", "replacement_scope": \n'
     manifest.write_text(text)
-    cfg = EvaluateConfig(manifest=manifest, out=broken / "results", editor="broken", model_dir=bench["models"],
+    cfg = EvaluateConfig(manifest=manifest, out=broken / "results", editor="broken", model_dir=bench["models"], protocol="paper",
                          judge=None, chunk_size=3, cluster=ClusterConfig(address=bench["cluster"].scheduler_address))
     s = run_evaluate(cfg)
     errs = {e["id"]: e["error"] for e in s["errors"]}
@@ -300,7 +300,7 @@ def test_export_reimport_scores_identically(bench, scored, tmp_path, monkeypatch
     for _, obj, _ in iter_jsonl(exported):
         assert obj["src_path"].startswith("/") and obj["replacement_scope"] == "hand-only" and obj["test_mask_path"] == ""
     monkeypatch.chdir(tmp_path)
-    cfg = EvaluateConfig(manifest=exported, out=tmp_path / "res", editor="copy", model_dir=bench["models"], judge=None,
+    cfg = EvaluateConfig(manifest=exported, out=tmp_path / "res", editor="copy", model_dir=bench["models"], judge=None, protocol="paper",
                          chunk_size=2, paths_relative_to="cwd",
                          cluster=ClusterConfig(address=bench["cluster"].scheduler_address))
     run_evaluate(cfg)
@@ -328,7 +328,7 @@ def test_missing_optional_inputs_disable_only_their_metrics(tmp_path, prefect_ap
             {"id": "with-gt", "scope": "hand", "robot_name": "allegro", "src_path": "src.png", "pred_path": "pred.png",
              "gt_path": "gt.png"}]
     (tmp_path / "m.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
-    cfg = EvaluateConfig(manifest=tmp_path / "m.jsonl", out=tmp_path / "res", editor="x", model_dir=None, judge=None,
+    cfg = EvaluateConfig(manifest=tmp_path / "m.jsonl", out=tmp_path / "res", editor="x", model_dir=None, judge=None, protocol="paper",
                          paths_relative_to="manifest", cluster=ClusterConfig(address=dask_cluster.scheduler_address))
     s = run_evaluate(cfg)
     assert s["n_errors"] == 0
@@ -337,3 +337,34 @@ def test_missing_optional_inputs_disable_only_their_metrics(tmp_path, prefect_ap
     assert bare["removal"] and not bare["psnr_full"] and "no pseudo-GT" in bare["disabled"]
     assert "ROI = whole image" in bare["disabled"] and "no object mask" in bare["disabled"]
     assert float(gt["psnr_full"]) > 0 and not gt["psnr_bg"] and "no pseudo-GT" not in gt["disabled"]
+
+
+def test_toolkit_protocol_on_the_project_test_set(bench, scored, tmp_path):
+    """The same editors' predictions under the toolkit protocol: its files, the oracle ahead of
+    the copy editor on every similarity metric, and ``bench report`` tables from the same numbers."""
+    from handedit.benchmark.toolkit_report import TO_PROJECT
+
+    d = bench["dir"]
+    models = write_encoders(tmp_path / "models", sizes=TOOLKIT_SIZES)
+    means = {}
+    for name in ("copy", "oracle"):
+        out = BenchDir(d).results(f"{name}-toolkit")
+        cfg = EvaluateConfig(manifest=export_manifest(d, name, out / "manifest.jsonl"), out=out, editor=f"{name}-toolkit",
+                             model_dir=models, judge=None, chunk_size=2,
+                             cluster=ClusterConfig(address=bench["cluster"].scheduler_address))
+        summary = run_evaluate(cfg)
+        (group,) = [k for k in summary if k != "_meta"]
+        means[name] = summary[group]
+        rows = [json.loads(x) for x in (out / "per_sample.jsonl").read_text().splitlines()]
+        assert len(rows) == len(bench["meta"]["items"]) and not any(r["error"] for r in rows)
+        assert (out / "leaderboard.md").is_file() and (out / "report_summary.json").is_file()
+    c, o = means["copy"], means["oracle"]
+    assert o["Full-PSNR_mean"] == np.inf and o["Full-LPIPS_mean"] == pytest.approx(0, abs=1e-9)
+    for m in ("ROI-PSNR", "BG-PSNR", "Full-SSIM", "ROI-SSIM", "Fidelity-Shape", "Fidelity-ID"):
+        assert o[f"{m}_mean"] > c[f"{m}_mean"], m
+    assert c["Interaction_mean"] == pytest.approx(1.0) and c["Removal_mean"] < o["Removal_mean"]
+    write_report(d, ["copy-toolkit", "oracle-toolkit"])
+    md = (BenchDir(d).report / "tables.md").read_text()
+    assert "| oracle-toolkit |" in md and "| copy-toolkit |" in md
+    project = json.loads((BenchDir(d).results("oracle-toolkit") / "report_summary.json").read_text())
+    assert project["tracks"]["hand"]["metrics"][TO_PROJECT["ROI-SSIM"]] == pytest.approx(o["ROI-SSIM_mean"])

@@ -100,9 +100,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     relative = args.paths_relative_to or ("cwd" if args.manifest else "manifest")
     cfg = EvaluateConfig(manifest=manifest, out=out, editor=args.name, model_dir=args.models or os.environ.get("HANDEDIT_MODEL_DIR"),
                          paths_relative_to=relative,
-                         judge=judge, chunk_size=args.chunk_size,
+                         judge=judge, chunk_size=args.chunk_size, protocol=args.protocol,
                          cluster=ClusterConfig(address=args.address, n_workers=args.workers))
     summary = run_evaluate(cfg)
+    if cfg.protocol == "toolkit":
+        return _print_toolkit(summary, out)
     for scope, t in summary["tracks"].items():
         judged = f", {t['n_judge_failed']} judge failure(s) (no VLM score)" if t.get("n_judge_failed") else ""
         print(f"{scope}: {t['n_scored']}/{t['n_items']} scored{judged}")
@@ -114,6 +116,23 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     for e in summary.get("judge_failures", [])[:10]:
         print(f"  judge failed on {e['id']}: {e['error']}", file=sys.stderr)
     print(f"results: {out}")
+    return 0
+
+
+def _print_toolkit(summary: dict, out: Path) -> int:
+    meta = summary["_meta"]
+    for key, g in summary.items():
+        if key == "_meta":
+            continue
+        shown = {m: g.get(f"{m}_mean") for m in ("Full-PSNR", "ROI-SSIM", "BG-LPIPS", "Removal", "Fidelity", "Interaction", "VLM")}
+        shown.update({m: g.get(m) for m in ("Full-FID", "ROI-FID")})
+        print(f"{key or '(no dataset/task)'}: n={g['n']}  " + json.dumps({k: (round(v, 4) if isinstance(v, float) and v == v else None)
+                                                                           for k, v in shown.items()}))
+    if meta["skipped"]:
+        print(f"left empty (encoder or judge missing): {', '.join(meta['skipped'])}", file=sys.stderr)
+    for e in meta["errors"][:10]:
+        print(f"  {e['id']}: {e['error']}", file=sys.stderr)
+    print(f"results (toolkit protocol): {out}/per_sample.jsonl, summary.json, leaderboard.md")
     return 0
 
 
@@ -178,6 +197,9 @@ def register(subparsers) -> None:
     e.add_argument("--judge-url", help="OpenAI-compatible chat base URL (default env HANDEDIT_VLM_BASE_URL)")
     e.add_argument("--judge-model", help="default env HANDEDIT_VLM_MODEL or gpt-4o")
     e.add_argument("--chunk-size", type=int, default=16)
+    e.add_argument("--protocol", choices=("toolkit", "paper"), default="toolkit",
+                   help="toolkit (default): every metric as the authors' toolkit computes it, its output files; "
+                        "paper: this project's reading of the paper's equations")
     e.add_argument("--address", help="Dask scheduler address")
     e.add_argument("--workers", type=int, default=2)
     e.set_defaults(func=cmd_evaluate)
