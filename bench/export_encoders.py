@@ -1,21 +1,29 @@
 """Export the metric encoders to the ONNX files ``handedit.metrics.encoders`` reads.
 
-Needs the optional ``export`` extra (torch, transformers, lpips, pytorch-fid) and the
-weights on disk or in the Hugging Face cache; nothing here is needed at evaluation time.
+Needs the optional ``export`` extra (torch, transformers, lpips, clean-fid, pytorch-fid)
+and the weights on disk or in the Hugging Face / clean-fid caches; nothing here is needed at
+evaluation time. The defaults are exactly the models the authors' toolkit scores with (its
+``EvalConfig``): DINOv2-base, CLIP ViT-B/32 image features, LPIPS AlexNet and clean-fid's
+Inception (the TF FID graph as TorchScript):
 
-    python bench/export_encoders.py --out models/ \\
-        --dinov2 facebook/dinov2-base --clip openai/clip-vit-large-patch14 \\
-        --lpips alex --inception pt_inception-2015-12-05.pth
+    python bench/export_encoders.py --out models/ --dinov2 facebook/dinov2-base \
+        --clip openai/clip-vit-base-patch32 --lpips alex --inception cleanfid
     python bench/export_encoders.py --check models/      # onnxruntime-only: signatures + one forward pass
 
-Signatures written (see ``handedit/metrics/encoders.py``; inputs are float32 NCHW, already
-normalised by handedit with the mean/std listed there, so the graphs hold no preprocessing):
+Signatures written (see ``handedit/metrics/encoders.py``). The graphs hold no preprocessing:
+the toolkit protocol (``handedit.metrics.toolkit``) does it in numpy as the Hugging Face
+processors and clean-fid do (shortest-edge bicubic resize, centre crop, normalisation; the
+float per-channel bicubic resize to 299), the paper protocol with the mean/std listed there:
 
-- dinov2.onnx       (N,3,224,224) -> (N,D) CLS token of the last layer (after the final norm)
-- clip_image.onnx   (N,3,224,224) -> (N,D) projected image embedding (image_embeds)
+- dinov2.onnx       (N,3,224,224) -> (N,768) CLS token of the last layer (after the final norm)
+- clip_image.onnx   (N,3,224,224) -> (N,512) projected image features (``get_image_features``)
 - inception.onnx    (N,3,299,299) in [0,1] -> (N,2048) pool3 features of the FID Inception
+  (``cleanfid``: clean-fid's InceptionV3W fed x * 255, as its "clean" mode feeds it;
+  ``pytorch-fid[:weights.pth]``: pytorch-fid's port, for the paper protocol's older runs)
 - lpips_backbone.onnx (N,3,H,W) (LPIPS scaling folded into handedit's mean/std) -> the L
   feature maps LPIPS compares (alex: 5 ReLU outputs), and lpips_heads.npz with lin0..lin{L-1}
+
+Not run on the project's CI machine (no torch, no network there); ``--check`` is.
 """
 
 from __future__ import annotations
@@ -79,32 +87,45 @@ def export_clip(name: str, out: Path) -> None:
             self.m = m
 
         def forward(self, x):
-            return self.m(pixel_values=x).image_embeds
+            return self.m(pixel_values=x).image_embeds  # = CLIPModel.get_image_features
 
     size = int(model.config.image_size)
     _export(Emb(model), torch.zeros(1, 3, size, size), out / "clip_image.onnx", ["embedding"])
 
 
-def export_inception(weights: str | None, out: Path) -> None:
+def export_inception(kind: str, out: Path) -> None:
+    """``cleanfid`` (the toolkit's FID network) or ``pytorch-fid[:weights.pth]``."""
     torch = _torch()
-    from pytorch_fid.inception import InceptionV3
-
-    if weights:  # pytorch-fid loads FID_WEIGHTS_URL through torch.hub; point its cache at the file
-        import pytorch_fid.inception as pi
-
-        state = torch.load(weights, map_location="cpu")
-        pi.load_state_dict_from_url = lambda *a, **k: state  # noqa: E731
-    net = InceptionV3([InceptionV3.BLOCK_INDEX_BY_DIM[2048]], resize_input=False, normalize_input=True)
+    name, _, weights = kind.partition(":")
 
     class Pool(torch.nn.Module):
-        def __init__(self, m):
+        def __init__(self, m, scale):
             super().__init__()
-            self.m = m
+            self.m, self.scale = m, scale
 
         def forward(self, x):
-            return self.m(x)[0].flatten(1)
+            y = self.m(x * self.scale)
+            return (y[0] if isinstance(y, (list, tuple)) else y).flatten(1)
 
-    _export(Pool(net), torch.zeros(1, 3, 299, 299), out / "inception.onnx", ["features"])
+    if name == "cleanfid":
+        import tempfile
+
+        from cleanfid.inception_torchscript import InceptionV3W
+
+        cache = weights or tempfile.mkdtemp(prefix="cleanfid-")  # a folder holding inception-2015-12-05.pt
+        net, scale = InceptionV3W(cache, download=True, resize_inside=False), 255.0  # it takes [0, 255]
+    elif name == "pytorch-fid":
+        from pytorch_fid.inception import InceptionV3
+
+        if weights:  # pytorch-fid loads FID_WEIGHTS_URL through torch.hub; point its cache at the file
+            import pytorch_fid.inception as pi
+
+            state = torch.load(weights, map_location="cpu")
+            pi.load_state_dict_from_url = lambda *a, **k: state  # noqa: E731
+        net, scale = InceptionV3([InceptionV3.BLOCK_INDEX_BY_DIM[2048]], resize_input=False, normalize_input=True), 1.0
+    else:
+        raise SystemExit(f"--inception {kind!r}: use cleanfid[:DIR] or pytorch-fid[:weights.pth]")
+    _export(Pool(net, scale), torch.zeros(1, 3, 299, 299), out / "inception.onnx", ["features"])
 
 
 def export_lpips(net_name: str, out: Path) -> None:
@@ -152,8 +173,9 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", type=Path, help="folder to write the ONNX files into")
     p.add_argument("--dinov2", help="HF id or local folder, e.g. facebook/dinov2-base")
-    p.add_argument("--clip", help="HF id or local folder, e.g. openai/clip-vit-large-patch14")
-    p.add_argument("--inception", nargs="?", const="", help="FID Inception weights (.pth); empty: pytorch-fid's cache")
+    p.add_argument("--clip", help="HF id or local folder; the toolkit's: openai/clip-vit-base-patch32")
+    p.add_argument("--inception", nargs="?", const="cleanfid",
+                   help="cleanfid[:DIR] (the toolkit's, default) or pytorch-fid[:weights.pth]")
     p.add_argument("--lpips", choices=("alex", "vgg", "squeeze"), help="LPIPS backbone")
     p.add_argument("--check", type=Path, help="verify an exported folder with onnxruntime only")
     args = p.parse_args(argv)
@@ -167,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.clip:
         export_clip(args.clip, args.out)
     if args.inception is not None:
-        export_inception(args.inception or None, args.out)
+        export_inception(args.inception, args.out)
     if args.lpips:
         export_lpips(args.lpips, args.out)
     return check(args.out)

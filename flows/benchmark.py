@@ -49,12 +49,20 @@ def _replaced(root, clip: str, emb: str, frame: int) -> np.ndarray:
     return read_array(root[Unit("qc", clip, embodiment=emb).path]["hand_status"], frame) == Reason.OK
 
 
+PSEUDO_GT = ("harmonized", "composite")
+
+
 def build_testset(store: str | Path, bench: str | Path, n_sources: int = 1000, embodiments: list[str] | None = None,
-                  bank: str | Path | None = None, seed: int = 0, tracks: tuple[str, ...] = ("hand", "hand_arm")) -> dict:
+                  bank: str | Path | None = None, seed: int = 0, tracks: tuple[str, ...] = ("hand", "hand_arm"),
+                  pseudo_gt: str = "harmonized", toolkit_references: str | Path | None = None) -> dict:
     """Write the two tracks' items (N source frames x the track's embodiments) and the manifest.
 
-    Without a reference bank the items have no reference views: editors get no render
-    and ID fidelity's S_ref is skipped (logged). Returns the folder's meta.
+    ``pseudo_gt``: the harmonized composite (the paper) or the unharmonized one (what the
+    toolkit's README says its main benchmark uses). ``toolkit_references``: the authors'
+    reference folder (one render per target, ``hand-only/``, ``hand-arm/``) as the items'
+    reference views, with the short descriptions the toolkit conditions on, instead of the
+    project's rendered bank. Without either, items have no reference views: editors get no
+    render and ID fidelity's S_ref is skipped (logged). Returns the folder's meta.
     """
     from handedit.storage.location import staged_dir
 
@@ -63,15 +71,18 @@ def build_testset(store: str | Path, bench: str | Path, n_sources: int = 1000, e
 
     clips = curated_clips(root)
     require_complete(Location(store), clips, "bench build")
+    if pseudo_gt not in PSEUDO_GT:
+        raise ValueError(f"pseudo_gt must be one of {PSEUDO_GT}, got {pseudo_gt!r}")
     with staged_dir(bench) as tmp:  # the folder appears only once complete
-        return _build(StoreItems(root, clips), store, BenchDir(tmp), n_sources, embodiments, bank, seed, tracks)
+        return _build(StoreItems(root, clips, pseudo_gt), store, BenchDir(tmp), n_sources, embodiments, bank, seed, tracks,
+                      toolkit_references)
 
 
 class StoreItems:
     """Test-set inputs from a curated store."""
 
-    def __init__(self, root, clips):
-        self.root, self.clips = root, clips
+    def __init__(self, root, clips, pseudo_gt: str = "harmonized"):
+        self.root, self.clips, self.pseudo_gt = root, clips, pseudo_gt
         self.embodiments = {e: get_embodiment(e).track for c in clips
                             for e in (root[f"clips/{c}/embodiments"].group_keys() if f"clips/{c}/embodiments" in root else [])}
 
@@ -84,7 +95,8 @@ class StoreItems:
         src_grp = root[Unit("ingest", clip).path]
         humans = read_array(root[Unit("segment", clip).path][SCOPE_MASK[scope]], frame)  # (S,H,W) per hand
         obj = read_array(src_grp["object_mask"], frame) if "object_mask" in src_grp else None
-        gt = read_array(root[Unit("harmonize", clip, embodiment=emb).path]["image"], frame)
+        stage = "harmonize" if self.pseudo_gt == "harmonized" else "composite"
+        gt = read_array(root[Unit(stage, clip, embodiment=emb).path]["image"], frame)
         robots = read_array(root[Unit("composite", clip, embodiment=emb).path]["robot_mask"], frame)
         replaced = _replaced(root, clip, emb, frame)
         return read_array(src_grp["frames"], frame), gt, humans[replaced].any(0), robots[replaced].any(0), obj
@@ -129,22 +141,26 @@ class ReleaseItems:
 
 def build_testset_from_release(release: str | Path, bench: str | Path, n_sources: int = 1000,
                                embodiments: list[str] | None = None, bank: str | Path | None = None, seed: int = 0,
-                               tracks: tuple[str, ...] = ("hand", "hand_arm")) -> dict:
+                               tracks: tuple[str, ...] = ("hand", "hand_arm"), pseudo_gt: str = "harmonized",
+                               toolkit_references: str | Path | None = None) -> dict:
     """The same test set, from a published release (``<releases>/<version>``) instead of a store."""
     from handedit.storage.location import staged_dir
 
+    if pseudo_gt != "harmonized":
+        raise ValueError(f"a release's shards hold the harmonized pseudo-GT only; build from its store (--store) for "
+                         f"pseudo_gt={pseudo_gt!r}")
     items = ReleaseItems(str(release))
     with staged_dir(bench) as tmp:
-        return _build(items, str(release), BenchDir(tmp), n_sources, embodiments, bank, seed, tracks)
+        return _build(items, str(release), BenchDir(tmp), n_sources, embodiments, bank, seed, tracks, toolkit_references)
 
 
-def _build(source, store, out: BenchDir, n_sources, embodiments, bank, seed, tracks) -> dict:
+def _build(source, store, out: BenchDir, n_sources, embodiments, bank, seed, tracks, toolkit_references=None) -> dict:
     stored_embs = source.embodiments
     wanted = embodiments or sorted(stored_embs)
     unknown = [e for e in wanted if e not in stored_embs]
     if unknown:
         raise ValueError(f"embodiment(s) {unknown} were not curated into {store} (it has {sorted(stored_embs)})")
-    refs = _write_refs(out, wanted, bank)
+    refs = _toolkit_refs(out, wanted, toolkit_references) if toolkit_references else _write_refs(out, wanted, bank)
     items: list[TestItem] = []
     for scope in tracks:
         embs = [e for e in wanted if stored_embs[e] == scope]
@@ -172,6 +188,8 @@ def _build(source, store, out: BenchDir, n_sources, embodiments, bank, seed, tra
     manifest = [manifest_item(out, it, refs.get(it.embodiment, {}), pred="") for it in items]
     write_jsonl(out.manifest, [m.to_record(out.root) for m in manifest])
     meta = {"created": now_iso(), "store": str(store), "bank": str(bank) if bank else None, "n_sources": n_sources,
+            "pseudo_gt": getattr(source, "pseudo_gt", "harmonized"),
+            "references": f"toolkit: {toolkit_references}" if toolkit_references else ("bank" if bank else None),
             "seed": seed, "items": [asdict(i) for i in items],
             "tracks": {s: sorted({i.embodiment for i in items if i.scope == s}) for s in tracks}}
     write_json(out.meta, meta)
@@ -198,6 +216,28 @@ def _write_refs(out: BenchDir, embs: list[str], bank: str | Path | None) -> dict
     return refs
 
 
+def _toolkit_refs(out: BenchDir, embs: list[str], folder: str | Path) -> dict[str, dict]:
+    """The authors' reference renders (no masks: the toolkit ships none) and short descriptions."""
+    import shutil
+
+    from handedit.benchmark.targets import compact_descriptor, toolkit_reference_renders
+
+    renders = toolkit_reference_renders(folder)
+    missing = [e for e in embs if e not in renders]
+    if not renders:
+        raise FileNotFoundError(f"{folder}: no toolkit reference renders (expected hand-only/*.png and hand-arm/*.png, "
+                                f"e.g. ../shared/benchmark/handedit-toolkit/reference)")
+    if missing:
+        raise FileNotFoundError(f"{folder}: no toolkit reference render for {missing}")
+    refs = {}
+    for emb in embs:
+        dst, _ = out.ref_files(emb, 0)
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(renders[emb], dst)
+        refs[emb] = {"views": [(str(dst), "")], "description": compact_descriptor(get_embodiment(emb).description) + "."}
+    return refs
+
+
 def manifest_item(out: BenchDir, it: TestItem, ref: dict, pred: str) -> ManifestItem:
     views = ref.get("views", [])
     obj = out.item_file(it.id, "object_mask")
@@ -207,7 +247,7 @@ def manifest_item(out: BenchDir, it: TestItem, ref: dict, pred: str) -> Manifest
         gt_mask_path=str(out.item_file(it.id, "robot_mask")), test_mask_path="",  # the prediction's robot mask: editors give none
         human_mask_path=str(out.item_file(it.id, "human_mask")), robot_mask_path=str(out.item_file(it.id, "robot_mask")),
         object_mask_path=str(obj) if it.extra.get("has_object") else "",
-        urdf_ref_paths=[a for a, _ in views], urdf_mask_paths=[b for _, b in views],
+        urdf_ref_paths=[a for a, _ in views], urdf_mask_paths=[b for _, b in views if b],
         extra={"embodiment": it.embodiment, "instruction": it.instruction, "description": it.description,
                "clip": it.clip, "frame": it.frame},
     )

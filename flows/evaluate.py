@@ -113,6 +113,26 @@ def _attach_reference_bank(items: list, records: list[dict]) -> None:
     for it, rec in zip(items, records):
         if not it.urdf_ref_paths:
             rec["toolkit_refs"] = bank.get((it.replacement_scope, it.embodiment or it.target_name), [])
+    # the judge's distractors: the first view of up to three other targets, the same track's first,
+    # in the order of the toolkit's "group:target" keys
+    first = {key: views[0][0] for key, views in bank.items() if views}
+
+    def order(key):
+        from handedit.embodiments import get_embodiment
+
+        scope, emb = key
+        try:
+            name = get_embodiment(emb).name
+        except Exception:  # a target outside the roster keeps its own spelling
+            name = emb
+        return f"{'hand_only' if scope == 'hand' else 'hand_arm'}:{name}"
+
+    keys = sorted(first, key=order)
+    for it, rec in zip(items, records):
+        own = (it.replacement_scope, it.embodiment or it.target_name)
+        same = [k for k in keys if k != own and k[0] == own[0]]
+        other = [k for k in keys if k != own and k[0] != own[0]]
+        rec["toolkit_distractors"] = [first[k] for k in (same + other if len(same) < 3 else same)[:3]]
 
 
 def _write_toolkit(cfg: "EvaluateConfig", records: list[dict], rows: list[dict], feats: dict, skipped: list[str],
@@ -132,7 +152,7 @@ def _write_toolkit(cfg: "EvaluateConfig", records: list[dict], rows: list[dict],
     summary["_meta"].update(protocol="toolkit", editor=cfg.editor, manifest=str(cfg.manifest), finished=now_iso(),
                             skipped=skipped_cols, n_items=len(rows), n_errors=len(errors), errors=errors,
                             n_manifest_errors=len(line_errors),
-                            vlm_protocol="paper (the judge of handedit.metrics.vlm)" if cfg.judge else "none")
+                            vlm_protocol=cfg.judge.protocol if cfg.judge else "none")
     cfg.out.mkdir(parents=True, exist_ok=True)
     write_text(cfg.out / "per_sample.jsonl", tr.to_jsonl(table))
     write_text(cfg.out / "per_sample.csv", tr.to_csv(table))

@@ -18,7 +18,7 @@ from prefect.cache_policies import NO_CACHE
 
 from handedit.benchmark.manifest import ManifestItem
 from handedit.benchmark.testset import instruction_for_target
-from handedit.metrics import toolkit
+from handedit.metrics import toolkit, vlm_toolkit
 from handedit.metrics.embodied import EmbodiedConfig
 from handedit.metrics.encoders import Encoders, load_encoders
 from handedit.metrics.suite import ItemImages, item_images, score_item
@@ -74,9 +74,33 @@ def toolkit_sample(it: ManifestItem) -> Sample:
                   refs=refs or [tuple(r) for r in it.extra.get("toolkit_refs", [])])
 
 
-def _score(job: EvalJob, it: ManifestItem, enc: Encoders, row: dict) -> tuple[dict, tuple | None]:
-    """One item's metrics under the job's protocol, into ``row``; (FID features, the judge's
-    (source, prediction, reference) or None without a judge)."""
+def _paper_judge(src, pred, ref, text):
+    def call(judge: VlmJudge) -> dict:
+        j = judge.judge(src, pred, ref, text)
+        return {"vlm_sc": j.sc, "vlm_pq": j.pq, "vlm": j.vlm, "vlm_calls": j.calls, "vlm_error": "; ".join(j.errors)}
+    return call
+
+
+def _toolkit_judge(it: ManifestItem, text: str):
+    refs = it.urdf_ref_paths[:1] or [r[0] for r in it.extra.get("toolkit_refs", [])[:1]]
+
+    def mask(path: str):
+        return read_mask(path) if path else None
+
+    def call(judge: VlmJudge) -> dict:
+        x = vlm_toolkit.JudgeInputs(read_image(it.src_path), read_image(it.pred_path), text, mask(it.human_mask_path),
+                                    mask(it.robot_mask_path), mask(it.object_mask_path),
+                                    read_image(refs[0]) if refs else None,
+                                    [read_image(p) for p in it.extra.get("toolkit_distractors", [])])
+        row, errors, calls = judge.judge_toolkit(x)
+        return {**vlm_toolkit.columns(row), "vlm_calls": calls, "vlm_error": "; ".join(errors)}
+    return call
+
+
+def _score(job: EvalJob, it: ManifestItem, enc: Encoders, row: dict):
+    """One item's metrics under the job's protocol, into ``row``; (FID features, the judge's call
+    for this item: judge -> row fields, or None without a judge)."""
+    text = it.instruction or instruction_for_target(it.replacement_scope, it.target_name)
     if job.protocol == "toolkit":
         metrics, f = toolkit.score_sample(toolkit_sample(it), _neural(job.model_dir))
         if metrics.get("error"):
@@ -84,13 +108,19 @@ def _score(job: EvalJob, it: ManifestItem, enc: Encoders, row: dict) -> tuple[di
         row.update(metrics)
         if job.judge is None:
             return f, None
+        if job.judge.protocol == "toolkit":
+            return f, _toolkit_judge(it, text)
         refs = it.urdf_ref_paths[:1]
-        return f, (read_image(it.src_path), read_image(it.pred_path), read_image(refs[0]) if refs else None)
+        return f, _paper_judge(read_image(it.src_path), read_image(it.pred_path), read_image(refs[0]) if refs else None, text)
     images, disabled = load_item(it)
     metrics, f = score_item(images, enc, job.embodied)
     row.update(metrics)
     row["disabled"] = disabled
-    return f, (images.src, images.pred, images.refs[0] if images.refs else None)
+    if job.judge is None:
+        return f, None
+    if job.judge.protocol == "toolkit":
+        return f, _toolkit_judge(it, text)
+    return f, _paper_judge(images.src, images.pred, images.refs[0] if images.refs else None, text)
 
 
 def body(job: EvalJob) -> dict:
@@ -106,19 +136,17 @@ def body(job: EvalJob) -> dict:
                    "dataset": it.extra.get("dataset", ""), "task": it.extra.get("task", "")}
             t0 = time.monotonic()
             try:
-                f, judged = _score(job, it, enc, row)
+                f, judge_call = _score(job, it, enc, row)
                 if f:
                     feats[it.id] = f
-                if pool is not None and judged is not None:
-                    text = it.instruction or instruction_for_target(it.replacement_scope, it.target_name)
-                    pending.append((row, pool.submit(judge.judge, *judged, text)))
+                if pool is not None and judge_call is not None:
+                    pending.append((row, pool.submit(judge_call, judge)))
             except Exception as exc:  # per-item error row; the chunk continues
                 row["error"] = f"{type(exc).__name__}: {exc}"
             row["seconds"] = time.monotonic() - t0
             rows.append(row)
         for row, fut in pending:
-            j = fut.result()
-            row.update(vlm_sc=j.sc, vlm_pq=j.pq, vlm=j.vlm, vlm_calls=j.calls, vlm_error="; ".join(j.errors))
+            row.update(fut.result())
     finally:
         if pool is not None:
             pool.shutdown(wait=True)

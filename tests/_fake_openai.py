@@ -1,7 +1,8 @@
 """A fake OpenAI-compatible server on 127.0.0.1 (stdlib http.server in a thread).
 
 - POST /v1/chat/completions: the judge. SC replies 1s when the edited image equals the
-  source (nothing was edited), else 5/4/4/5; PQ replies 4/4/3. ``malformed_next``
+  source (nothing was edited), else 5/4/4/5 (and, asked for the toolkit protocol's identity
+  fields, reference A, or B when unchanged or ``wrong_choice``); PQ replies 4/4/3. ``malformed_next``
   makes the next N replies unparseable; ``fail_always`` makes every reply malformed.
 - POST /v1/images/edits: an editor that returns the first uploaded image (b64_json).
 ``echo_errors`` answers 401 with the request headers echoed; ``delay_s`` delays answers.
@@ -33,6 +34,7 @@ class FakeOpenAI:
         self.fail_always = False
         self.echo_errors = False  # answer 401 with the request's headers in the body (as some proxies do)
         self.delay_s = 0.0  # sleep before answering (timeouts)
+        self.wrong_choice = False  # toolkit protocol: the judge picks distractor B
         self.lock = threading.Lock()
         outer = self
 
@@ -84,9 +86,11 @@ class FakeOpenAI:
     def chat(self, req: dict, headers) -> dict:
         content = req["messages"][0]["content"]
         text = content[0]["text"]
-        images = [_decode_data_url(c["image_url"]["url"]) for c in content[1:]]
+        images = [_decode_data_url(c["image_url"]["url"]) for c in content if c["type"] == "image_url"]
+        labels = [c["text"] for c in content[1:] if c["type"] == "text"]
         with self.lock:
-            self.requests.append({"kind": "chat", "text": text, "n_images": len(images), "auth": headers.get("Authorization")})
+            self.requests.append({"kind": "chat", "text": text, "n_images": len(images), "labels": labels,
+                                  "auth": headers.get("Authorization")})
             bad = self.fail_always or self.malformed_next > 0
             if self.malformed_next > 0:
                 self.malformed_next -= 1
@@ -97,8 +101,13 @@ class FakeOpenAI:
         else:
             unchanged = images[0].shape == images[1].shape and np.array_equal(images[0], images[1])
             s = (1, 1, 1, 1) if unchanged else (5, 4, 4, 5)
-            answer = "```json\n" + json.dumps(dict(zip(("robotness", "target_embodiment_match", "interaction_preservation",
-                                                        "scene_preservation"), s), reasoning="fake")) + "\n```"
+            fields = dict(zip(("robotness", "target_embodiment_match", "interaction_preservation", "scene_preservation"), s))
+            if "chosen_reference" in text:  # the toolkit protocol's identity fields (a distractor when unchanged)
+                fields.update(chosen_reference="B" if unchanged else "A", target_choice_correct=not unchanged,
+                              correct_ref_alignment=4.6, nearest_wrong_ref_alignment="2", identity_margin=9)
+                if self.wrong_choice:
+                    fields.update(chosen_reference="B", target_choice_correct="no")
+            answer = "```json\n" + json.dumps(dict(fields, reasoning="fake")) + "\n```"
         return {"choices": [{"message": {"role": "assistant", "content": answer}}]}
 
     def edit(self, body: bytes, headers) -> dict:

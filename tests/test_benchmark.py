@@ -67,7 +67,8 @@ def write_curated_store(path, n_frames: int = 6, rejected: tuple[int, ...] = (2,
         (Unit("ingest", clip), {"frames": ch.frames, "object_mask": ch.object_mask, "status": ok}, {"has_object": True, "has_gt": True}),
         (Unit("segment", clip), {"hand_mask": hand[:, None], "handarm_mask": ch.gt["handarm_mask"][:, None], "status": ok,
                                  "hand_status": one}, {}),
-        (Unit("composite", clip, embodiment=EMB), {"image": gt, "robot_mask": robot[:, None], "status": ok, "hand_status": one}, {}),
+        (Unit("composite", clip, embodiment=EMB), {"image": gt // 2, "robot_mask": robot[:, None], "status": ok,
+                                                  "hand_status": one}, {}),  # the unharmonized composite: darker
         (Unit("harmonize", clip, embodiment=EMB), {"image": gt, "status": ok}, {}),
         (Unit("qc", clip, embodiment=EMB), {"status": qc, "hand_status": qc[:, None]}, {}),
     ]:
@@ -368,3 +369,31 @@ def test_toolkit_protocol_on_the_project_test_set(bench, scored, tmp_path):
     assert "| oracle-toolkit |" in md and "| copy-toolkit |" in md
     project = json.loads((BenchDir(d).results("oracle-toolkit") / "report_summary.json").read_text())
     assert project["tracks"]["hand"]["metrics"][TO_PROJECT["ROI-SSIM"]] == pytest.approx(o["ROI-SSIM_mean"])
+
+
+def test_pseudo_gt_and_toolkit_references_are_selectable(bench, shared_dir, tmp_path):
+    """The unharmonized composite as pseudo-GT (the toolkit README's main benchmark) and the
+    authors' reference renders with short descriptions instead of the project's bank."""
+    from handedit.storage import open_store
+
+    store = bench["tmp"] / "handedit.zarr"
+    refs_dir = shared_dir / "benchmark" / "handedit-toolkit" / "reference"
+    meta = build_testset(store, tmp_path / "tk", N_SOURCES, pseudo_gt="composite", toolkit_references=refs_dir)
+    assert meta["pseudo_gt"] == "composite" and meta["references"].startswith("toolkit")
+    items, errors = load_manifest(BenchDir(tmp_path / "tk").manifest)
+    assert errors == [] and items
+    root = open_store(store)
+    for it in items:
+        frame = it.extra["frame"]
+        composite = root[Unit("composite", it.extra["clip"], embodiment=EMB).path]["image"][frame]
+        harmonized = root[Unit("harmonize", it.extra["clip"], embodiment=EMB).path]["image"][frame]
+        gt = read_image(it.gt_path)
+        assert np.array_equal(gt, composite) and not np.array_equal(gt, harmonized)
+        assert len(it.urdf_ref_paths) == 1 and it.urdf_mask_paths == []
+        assert open(it.urdf_ref_paths[0], "rb").read() == (refs_dir / "hand-only" / "allegro.png").read_bytes()
+        assert it.extra["description"] == ("A compact black robotic hand with a boxy palm, three straight front fingers "
+                                           "made of rectangular joint modules.")  # first sentence cut at 18 words
+    with pytest.raises(FileNotFoundError, match="no toolkit reference renders"):
+        build_testset(store, tmp_path / "none", N_SOURCES, toolkit_references=tmp_path)
+    with pytest.raises(ValueError, match="pseudo_gt must be one of"):
+        build_testset(store, tmp_path / "bad", N_SOURCES, pseudo_gt="raw")

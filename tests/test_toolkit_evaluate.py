@@ -85,3 +85,36 @@ def test_example_manifest_under_the_toolkit_protocol(shared_dir, tmp_path, prefe
     summary = json.loads((full / "summary.json").read_text())
     assert summary["_meta"]["skipped"] == ["VLM", "VLM-PQ", "VLM-SC"]
     assert isinstance(summary["HandEdit/handedit"]["Full-FID"], float)
+
+
+def test_toolkit_judge_protocol_with_distractors_and_its_own_cache(shared_dir, tmp_path, prefect_api, dask_cluster,
+                                                                    monkeypatch):
+    from _fake_openai import FakeOpenAI
+
+    manifest = _example(shared_dir, tmp_path)
+    base = ["bench", "evaluate", "--manifest", str(manifest), "--name", "example", "--address",
+            dask_cluster.scheduler_address]
+    with FakeOpenAI() as server:
+        monkeypatch.setenv("HANDEDIT_VLM_BASE_URL", server.base_url)
+        assert main(base + ["--out", str(tmp_path / "a")]) == 0  # toolkit protocol, so the toolkit judge
+        sc = [r for r in server.requests if "chosen_reference" in r["text"]]
+        assert len(sc) == 2 and len(server.requests) == 4  # SC + PQ per item
+        for r in sc:  # the other target (the other track: none of its own) is the one distractor
+            assert r["labels"][:3] == ["Source image:", "Edited image:", "Edited region (zoom):"]
+            assert "Reference A (the target robot):" in r["labels"] and "Reference B (another robot):" in r["labels"]
+        rows = [json.loads(x) for x in (tmp_path / "a" / "per_sample.jsonl").read_text().splitlines()]
+        for r in rows:
+            assert r["VLM-SC"] == 0.75 and r["VLM-PQ"] == 0.5 and r["VLM"] == math.sqrt(0.75 * 0.5)
+            assert r["VLM-correct_ref_alignment"] == 5 and r["VLM-identity_margin"] == 5  # clamped
+            assert r["VLM-target_choice_correct"] == 1 and r["VLM-vlm_num_distractors"] == 1
+        summary = json.loads((tmp_path / "a" / "summary.json").read_text())
+        assert summary["_meta"]["vlm_protocol"] == "toolkit" and "VLM" not in summary["_meta"]["skipped"]
+        n = len(server.requests)
+        assert main(base + ["--out", str(tmp_path / "a")]) == 0
+        assert len(server.requests) == n  # answers cached (in the results folder's vlm_cache)
+        assert main(base + ["--out", str(tmp_path / "a"), "--judge-protocol", "paper"]) == 0
+        assert len(server.requests) == n + 4  # another protocol never reuses them
+        server.wrong_choice = True
+        assert main(base + ["--out", str(tmp_path / "d")]) == 0
+        rows = [json.loads(x) for x in (tmp_path / "d" / "per_sample.jsonl").read_text().splitlines()]
+        assert all(r["VLM-target_embodiment_match"] == 3 and r["VLM-target_choice_correct"] == 0 for r in rows)

@@ -220,3 +220,41 @@ def test_summary_and_leaderboard_shapes():
     assert csv_text.splitlines()[1].startswith("D,b")  # sorted by VLM_mean, descending
     assert md.startswith("| exp_name | dataset | task | n |") and "Full-PSNR_mean" in md and "Full-PSNR_std" not in md
     json.dumps(s)  # NaN written as the toolkit writes it
+
+
+def test_toolkit_judge_crops_labels_and_scoring():
+    from handedit.metrics import vlm_toolkit as vt
+
+    assert vt.grow_to_min((0, 0, 10, 10), (200, 100), 96) == (0, 0, 96, 96)  # widened, then moved inside
+    assert vt.grow_to_min((150, 40, 190, 60), (200, 100), 96) == (104, 2, 200, 98)
+    img = np.zeros((120, 160, 3), np.uint8)
+    human = np.zeros((120, 160), bool)
+    human[50:60, 70:80] = True
+    crop = vt.crop_by_masks(img, [human, None], vt.ROI_PAD)
+    assert crop.size == (96, 96)  # 10 px + 2 x 24 pad = 58 -> at least 96
+    assert vt.crop_by_masks(img, [None], vt.ROI_PAD) is None
+    x = vt.JudgeInputs(img, img, "make it a robot", human_mask=human, reference=img, distractors=[img, img])
+    sc, pq, flags = vt.requests(x)
+    labels = [t for t, _ in sc[1:]]
+    assert labels == ["Source image:", "Edited image:", "Edited region (zoom):",
+                      "Edited object-contact region:",  # no object mask: the ROI zoom stands in, as in the toolkit
+                      "Reference A (the target robot):", "Reference B (another robot):", "Reference C (another robot):"]
+    assert all(u.startswith("data:image/jpeg;base64,") for _, u in sc[1:]) and sc[0][1] is None
+    assert "make it a robot" in sc[0][0] and "2 render(s) of other robots" in sc[0][0]
+    assert [t for t, _ in pq[1:]] == ["Edited image:", "Edited region (zoom):", "Edited boundary or contact region:"]
+    assert flags == {"vlm_has_urdf_ref": True, "vlm_num_distractors": 2, "vlm_has_roi_crop": True, "vlm_has_contact_crop": True}
+    answer = {"robotness": 4.6, "target_embodiment_match": "5", "interaction_preservation": 9, "scene_preservation": 0,
+              "chosen_reference": "B", "target_choice_correct": "no", "correct_ref_alignment": 3}
+    row = vt.combine(answer, {"naturalness": 4, "artifact_absence": 4, "local_coherence": 3}, flags)
+    assert (row["robotness"], row["interaction_preservation"], row["scene_preservation"]) == (5, 5, 1)  # clamped
+    assert row["target_embodiment_match"] == 3  # capped: a distractor was chosen
+    assert row["SC"] == 0.0 and row["PQ"] == 0.5 and row["VLM"] == 0.0
+    assert row["nearest_wrong_ref_alignment"] is None
+    partial = vt.combine({"robotness": 5}, {"naturalness": 4, "artifact_absence": 4, "local_coherence": 4}, flags)
+    assert math.isnan(partial["SC"]) and partial["PQ"] == 0.75 and math.isnan(partial["VLM"])
+    cols = vt.columns(row)
+    assert cols["VLM-target_embodiment_match"] == 3 and cols["VLM-target_choice_correct"] == 0
+    assert math.isnan(cols["VLM-nearest_wrong_ref_alignment"]) and cols["VLM-chosen_reference"] == "B"
+    with pytest.raises(Exception, match="no JSON object"):
+        vt.lenient_json("about a 4")
+    assert vt.lenient_json('Sure: {"robotness": 3} ok') == {"robotness": 3}

@@ -29,13 +29,23 @@ def cmd_build(args: argparse.Namespace) -> int:
     if bool(args.store) == bool(args.release):
         print("handedit bench build: give --store RUN or --release RELEASES/VERSION", file=sys.stderr)
         return 2
+    refs = None
+    if args.references == "toolkit":
+        refs = args.reference_dir or os.environ.get("HANDEDIT_TOOLKIT_REFERENCES")
+        if not refs:
+            print("handedit bench build: --references toolkit needs --reference-dir DIR (the toolkit's reference/ "
+                  "folder, e.g. ../shared/benchmark/handedit-toolkit/reference) or $HANDEDIT_TOOLKIT_REFERENCES",
+                  file=sys.stderr)
+            return 2
     try:
         if args.release:
             from handedit.flows.benchmark import build_testset_from_release
 
-            meta = build_testset_from_release(args.release, args.out, args.n, args.embodiment, args.bank, args.seed)
+            meta = build_testset_from_release(args.release, args.out, args.n, args.embodiment, args.bank, args.seed,
+                                              pseudo_gt=args.pseudo_gt, toolkit_references=refs)
         else:
-            meta = build_testset(args.store, args.out, args.n, args.embodiment, args.bank, args.seed)
+            meta = build_testset(args.store, args.out, args.n, args.embodiment, args.bank, args.seed,
+                                 pseudo_gt=args.pseudo_gt, toolkit_references=refs)
     except (StoreError, ValueError, FileNotFoundError) as exc:
         print(f"handedit bench build: {exc}", file=sys.stderr)
         return 2
@@ -96,7 +106,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     else:
         raise SystemExit("handedit bench evaluate: give --bench DIR (with --name) or --manifest FILE")
     cache = (Path(args.bench) / "vlm_cache") if args.bench else out / "vlm_cache"
-    judge = JudgeConfig.from_env(base_url=args.judge_url, model=args.judge_model, cache_dir=cache)
+    judge = JudgeConfig.from_env(base_url=args.judge_url, model=args.judge_model, cache_dir=cache,
+                                 protocol=args.judge_protocol or args.protocol)
     relative = args.paths_relative_to or ("cwd" if args.manifest else "manifest")
     cfg = EvaluateConfig(manifest=manifest, out=out, editor=args.name, model_dir=args.models or os.environ.get("HANDEDIT_MODEL_DIR"),
                          paths_relative_to=relative,
@@ -170,6 +181,11 @@ def register(subparsers) -> None:
     b.add_argument("-n", type=int, default=1000, help="source images per track")
     b.add_argument("--embodiment", action="append", help="restrict to these embodiments (repeatable)")
     b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--pseudo-gt", choices=("harmonized", "composite"), default="harmonized",
+                   help="harmonized composite (the paper) or unharmonized (the toolkit README's main benchmark)")
+    b.add_argument("--references", choices=("bank", "toolkit"), default="bank",
+                   help="reference views: the project's rendered bank (--bank) or the authors' 26 toolkit renders")
+    b.add_argument("--reference-dir", help="with --references toolkit: the toolkit's reference/ folder")
     b.set_defaults(func=cmd_build)
 
     r = sub.add_parser("run", help="run an editor over a test set (resumable)")
@@ -197,6 +213,8 @@ def register(subparsers) -> None:
     e.add_argument("--judge-url", help="OpenAI-compatible chat base URL (default env HANDEDIT_VLM_BASE_URL)")
     e.add_argument("--judge-model", help="default env HANDEDIT_VLM_MODEL or gpt-4o")
     e.add_argument("--chunk-size", type=int, default=16)
+    e.add_argument("--judge-protocol", choices=("toolkit", "paper"),
+                   help="the VLM judge's protocol (default: the same as --protocol)")
     e.add_argument("--protocol", choices=("toolkit", "paper"), default="toolkit",
                    help="toolkit (default): every metric as the authors' toolkit computes it, its output files; "
                         "paper: this project's reading of the paper's equations")

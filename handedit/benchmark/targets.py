@@ -34,3 +34,24 @@ def resolve_target(name: str, scope: str | None = None):
     if scope is not None:
         found = [e for e in found if e.track == scope] or found
     return found[0] if found else None
+
+
+def toolkit_reference_renders(folder) -> dict[str, "Path"]:
+    """{embodiment id: render} of the authors' toolkit reference folder (``hand-only/*.png``,
+    ``hand-arm/*.png``, one RViz-style render per target, named as the toolkit names them)."""
+    from pathlib import Path
+
+    out = {}
+    for sub, scope in (("hand-only", "hand"), ("hand-arm", "hand_arm")):
+        for p in sorted((Path(folder) / sub).glob("*.png")):
+            emb = resolve_target(p.stem, scope)
+            if emb is not None:
+                out[emb.id] = p
+    return out
+
+
+def compact_descriptor(description: str, max_words: int = 18) -> str:
+    """The short form the toolkit conditions on: the first sentence, at most ``max_words`` words."""
+    first = (description or "").split(".", 1)[0].strip()
+    words = first.split()
+    return first if len(words) <= max_words else " ".join(words[:max_words]).rstrip(",;:")

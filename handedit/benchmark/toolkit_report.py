@@ -47,6 +47,7 @@ def per_sample_row(row: dict, record: dict) -> dict:
     for m in METRIC_COLUMNS:
         v = row.get(m)
         out[m] = float("nan") if v is None else v
+    out.update({k: v for k, v in row.items() if k.startswith("VLM-") and k not in out})  # the judge's passthrough fields
     for k in TAIL:
         out[k] = row.get(k, "")
     return out

@@ -25,6 +25,7 @@ import urllib.error
 import urllib.request
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -147,6 +148,9 @@ class JudgeConfig(BaseModel):
     timeout_s: float = Field(120.0, gt=0)
     temperature: float = 0.0
     concurrency: int = Field(4, ge=1, description="judge calls in flight per evaluate task")
+    protocol: Literal["paper", "toolkit"] = Field(
+        "paper", description="paper: the paper's two prompts; toolkit: crops, labelled JPEGs, distractor references "
+                             "and identity fields as the authors' toolkit judges (handedit.metrics.vlm_toolkit)")
 
     @classmethod
     def from_env(cls, **overrides) -> "JudgeConfig | None":
@@ -199,17 +203,46 @@ class VlmJudge:
         pq = aspect_score(pq_scores, PQ_FIELDS) if pq_scores else float("nan")
         return Judgment(sc, pq, vlm_score(sc, pq), sc_scores, pq_scores, [redact(e) for e in errors], calls)
 
+    def judge_toolkit(self, x) -> tuple[dict, list[str], int]:
+        """The toolkit protocol's two calls (``handedit.metrics.vlm_toolkit``): (its row, errors, calls)."""
+        from handedit.metrics import vlm_toolkit as vt
+
+        sc_parts, pq_parts, flags = vt.requests(x)
+        answers, errors, calls = {}, [], 0
+        for name, parts in (("SC", sc_parts), ("PQ", pq_parts)):
+            try:
+                answers[name], n = self.ask_parts(parts, vt.lenient_json)
+                calls += n
+            except Exception as exc:  # recorded per item, never fatal for the run
+                errors.append(f"{name}: {exc}")
+        return vt.combine(answers.get("SC", {}), answers.get("PQ", {}), flags), [redact(e) for e in errors], calls
+
     def ask(self, prompt: str, images: list[np.ndarray], fields: tuple[str, ...]) -> tuple[dict, int]:
         """One validated answer (from the cache, or up to ``max_tries`` calls)."""
         urls = [png_data_url(im) for im in images]
         key = hashlib.sha256(json.dumps([self.cfg.model, prompt, [hashlib.sha256(u.encode()).hexdigest() for u in urls]]).encode()).hexdigest()
+        content = [{"type": "text", "text": prompt}] + [{"type": "image_url", "image_url": {"url": u}} for u in urls]
+        return self._ask(key, content, lambda text: parse_answer(text, fields))
+
+    def ask_parts(self, parts: list[tuple[str, str | None]], parse) -> tuple[dict, int]:
+        """Labelled images (text, then its image when given) as one message; the cache key
+        carries the protocol so that the two protocols never share an answer."""
+        content, digest = [], ["toolkit", self.cfg.model]
+        for text, url in parts:
+            content.append({"type": "text", "text": text})
+            digest.append(text)
+            if url:
+                content.append({"type": "image_url", "image_url": {"url": url}})
+                digest.append(hashlib.sha256(url.encode()).hexdigest())
+        return self._ask(hashlib.sha256(json.dumps(digest).encode()).hexdigest(), content, parse)
+
+    def _ask(self, key: str, content: list[dict], parse) -> tuple[dict, int]:
         cached = self._cache_path(key)
         if cached and cached.exists():
             try:
-                return parse_answer(json.loads(cached.read_text())["content"], fields), 0
+                return parse(json.loads(cached.read_text())["content"]), 0
             except (MalformedAnswer, ValueError, KeyError):
                 cached.unlink(missing_ok=True)
-        content = [{"type": "text", "text": prompt}] + [{"type": "image_url", "image_url": {"url": u}} for u in urls]
         body = {"model": self.cfg.model, "temperature": self.cfg.temperature,
                 "messages": [{"role": "user", "content": content}]}
         last = ""
@@ -218,7 +251,7 @@ class VlmJudge:
                 time.sleep(self.cfg.backoff_s * 2 ** (attempt - 1))
             try:
                 text = self._post(body)
-                answer = parse_answer(text, fields)
+                answer = parse(text)
             except (MalformedAnswer, urllib.error.URLError, TimeoutError, OSError, KeyError, ValueError) as exc:
                 last = f"{type(exc).__name__}: {exc}"
                 continue
