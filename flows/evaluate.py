@@ -49,6 +49,7 @@ class EvaluateConfig(BaseModel):
     judge: JudgeConfig | None = None
     embodied: EmbodiedConfig = EmbodiedConfig()
     chunk_size: int = Field(16, ge=1, description="items per task")
+    roi_dilate_px: int = Field(0, ge=0, description="toolkit protocol: grow the ROI by a disc of this radius (its --roi-dilate-px)")
     protocol: Literal["toolkit", "paper"] = Field(
         "toolkit", description="toolkit: every metric as the authors' toolkit computes it (published numbers); "
                                "paper: this project's reading of the paper's equations")
@@ -73,7 +74,7 @@ def evaluate(cfg: EvaluateConfig) -> dict:
         _attach_reference_bank(items, records)
     chunks = [records[i:i + cfg.chunk_size] for i in range(0, len(records), cfg.chunk_size)]
     model_dir = str(cfg.model_dir) if cfg.model_dir else None
-    futures = [evaluate_chunk.submit(EvalJob(k, c, model_dir, cfg.judge, cfg.embodied, cfg.protocol))
+    futures = [evaluate_chunk.submit(EvalJob(k, c, model_dir, cfg.judge, cfg.embodied, cfg.protocol, cfg.roi_dilate_px))
                for k, c in enumerate(chunks)]
     rows, feats = [], {}
     for k, fut in enumerate(futures):

@@ -36,6 +36,7 @@ class EvalJob:
     judge: JudgeConfig | None
     embodied: EmbodiedConfig
     protocol: str = "toolkit"  # "toolkit" (handedit.metrics.toolkit) or "paper" (handedit.metrics.suite)
+    roi_dilate_px: int = 0  # toolkit protocol only
 
 
 @lru_cache(maxsize=4)
@@ -102,7 +103,8 @@ def _score(job: EvalJob, it: ManifestItem, enc: Encoders, row: dict):
     for this item: judge -> row fields, or None without a judge)."""
     text = it.instruction or instruction_for_target(it.replacement_scope, it.target_name)
     if job.protocol == "toolkit":
-        metrics, f = toolkit.score_sample(toolkit_sample(it), _neural(job.model_dir))
+        metrics, f = toolkit.score_sample(toolkit_sample(it), _neural(job.model_dir),
+                                          toolkit.ToolkitConfig(roi_dilate_px=job.roi_dilate_px))
         if metrics.get("error"):
             raise FileNotFoundError(metrics.pop("error"))
         row.update(metrics)

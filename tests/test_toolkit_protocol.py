@@ -258,3 +258,13 @@ def test_toolkit_judge_crops_labels_and_scoring():
     with pytest.raises(Exception, match="no JSON object"):
         vt.lenient_json("about a 4")
     assert vt.lenient_json('Sure: {"robotness": 3} ok') == {"robotness": 3}
+
+
+def test_optional_roi_dilation_is_a_disc(files):
+    cfg = tk.ToolkitConfig(roi_dilate_px=3)
+    grown = tk.dilate_disc(files["roi"].astype(np.uint8), cfg)
+    yy, xx = np.ogrid[-3:4, -3:4]
+    np.testing.assert_array_equal(grown, binary_dilation(files["roi"], structure=xx * xx + yy * yy <= 9))
+    row, _ = tk.score_sample(_sample(files), tk.Neural(Encoders()), cfg)
+    g, p = _f32(files["gt"]), _f32(files["pred"])
+    assert row["BG-PSNR"] == pytest.approx(10 * math.log10(1 / float(((p - g) ** 2)[grown == 0].mean())), abs=1e-9)

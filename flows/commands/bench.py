@@ -111,7 +111,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     relative = args.paths_relative_to or ("cwd" if args.manifest else "manifest")
     cfg = EvaluateConfig(manifest=manifest, out=out, editor=args.name, model_dir=args.models or os.environ.get("HANDEDIT_MODEL_DIR"),
                          paths_relative_to=relative,
-                         judge=judge, chunk_size=args.chunk_size, protocol=args.protocol,
+                         judge=judge, chunk_size=args.chunk_size, protocol=args.protocol, roi_dilate_px=args.roi_dilate_px,
                          cluster=ClusterConfig(address=args.address, n_workers=args.workers))
     summary = run_evaluate(cfg)
     if cfg.protocol == "toolkit":
@@ -213,6 +213,7 @@ def register(subparsers) -> None:
     e.add_argument("--judge-url", help="OpenAI-compatible chat base URL (default env HANDEDIT_VLM_BASE_URL)")
     e.add_argument("--judge-model", help="default env HANDEDIT_VLM_MODEL or gpt-4o")
     e.add_argument("--chunk-size", type=int, default=16)
+    e.add_argument("--roi-dilate-px", type=int, default=0, help="toolkit protocol: grow the ROI by a disc of this radius")
     e.add_argument("--judge-protocol", choices=("toolkit", "paper"),
                    help="the VLM judge's protocol (default: the same as --protocol)")
     e.add_argument("--protocol", choices=("toolkit", "paper"), default="toolkit",
