@@ -12,7 +12,7 @@ import numpy as np
 import zarr
 
 from handedit.storage.layout import BANK_GROUP, BANK_SCHEMA_VERSION, bank_embodiment_path
-from handedit.storage.store import IMAGE_CODEC, StoreError, jsonable, read_array
+from handedit.storage.store import COLOUR_CODEC, IMAGE_CODEC, StoreError, jsonable, read_array
 
 
 @dataclass(frozen=True)
@@ -50,7 +50,7 @@ def write_bank_entry(path: str | Path, entry: BankEntry, rig: dict) -> None:
         del root[gpath]
     g = root.require_group(BANK_GROUP).create_group(entry.embodiment_id)
     V, H, W = entry.mask.shape
-    g.create_array("rgb", data=np.asarray(entry.rgb, np.uint8), chunks=(1, H, W, 3), compressors=IMAGE_CODEC)
+    g.create_array("rgb", data=np.asarray(entry.rgb, np.uint8), chunks=(1, H, W, 3), compressors=COLOUR_CODEC)
     g.create_array("mask", data=np.asarray(entry.mask, bool), chunks=(1, H, W), compressors=IMAGE_CODEC)
     g.create_array("camera_from_root", data=np.asarray(entry.camera_from_root, np.float64))
     g.create_array("qpos", data=np.asarray(entry.qpos, np.float32))

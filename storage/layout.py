@@ -119,7 +119,7 @@ class ArraySpec:
     tail: tuple[int | str, ...]
     dtype: str
     dims: tuple[str, ...]  # dimension names after 'frame' (xarray needs them)
-    image: bool = False  # compressed with Blosc zstd+bitshuffle, 1 frame per inner chunk
+    image: bool = False  # Blosc zstd (colour: level 1, masks/depth: bit-shuffled), 1 frame per inner chunk
     when: str | None = None  # only when the source has this: 'object', 'gt' or 'arm'
     fill: float | int | bool = 0
 

@@ -61,7 +61,9 @@ def test_arrays_chunked_per_writer_and_open_with_zarr_dask_xarray(root, tmp_path
     create_unit(root, unit, 10, {"H": 8, "W": 6, "S": 2}, F, has_object=True, has_gt=True)
     frames = root[unit.path]["frames"]
     assert frames.shape == (10, 8, 6, 3) and frames.chunks == (1, 8, 6, 3) and frames.shards == (F, 8, 6, 3)
-    assert "zstd" in str(frames.compressors) and "bitshuffle" in str(frames.compressors)
+    assert "zstd" in str(frames.compressors) and "noshuffle" in str(frames.compressors)  # colour: zstd level 1
+    mask = root[unit.path]["object_mask"]
+    assert "zstd" in str(mask.compressors) and "bitshuffle" in str(mask.compressors)  # masks: bit-shuffled
     assert root[unit.path]["keypoints"].chunks == (F, 2, 21, 3)  # a hand axis
     # two chunk-aligned writers fill disjoint files
     a = np.random.default_rng(0).integers(0, 255, (4, 8, 6, 3), dtype=np.uint8)

@@ -30,6 +30,7 @@ import pydantic
 
 from handedit.keypoints import N_JOINTS, PARENT, WRIST
 from handedit.reasons import STATUS_DTYPE, Reason, per_frame
+from handedit.vision.window import window
 
 
 class CompositeConfig(pydantic.BaseModel):
@@ -123,28 +124,39 @@ def human_residue(image: np.ndarray, source: np.ndarray, human: np.ndarray, robo
     """The residue statistic of one side (see module doc); nan when it cannot be measured."""
     H, W = human.shape
     pts = _bone_samples(np.asarray(keypoints_2d, float), np.asarray(keypoints_valid, bool))
-    if len(pts) < 8 or human.sum() < 30:
+    area = int(human.sum())
+    if len(pts) < 8 or area < 30:
         return float("nan")
     q = np.round(pts).astype(int)
     q = q[(q[:, 0] >= 0) & (q[:, 0] < W) & (q[:, 1] >= 0) & (q[:, 1] < H)]
     if len(q) < 8:
         return float("nan")
-    grown = cv2.dilate(human.astype(np.uint8), _disk(2)).astype(bool)
-    src = cv2.cvtColor(source, cv2.COLOR_RGB2YCrCb).astype(np.float32)
+    scale = float(np.sqrt(area))
+    r_out, r_in = max(1, int(round(0.5 * scale))), max(1, int(round(0.15 * scale)))
+    ys, xs = window(human, r_out + 1)  # every neighbourhood below stays inside it
+    h8 = human[ys, xs].astype(np.uint8)
+    grown_w = cv2.dilate(h8, _disk(2)).astype(bool)
+    grown = np.zeros((H, W), bool)
+    grown[ys, xs] = grown_w
     on_hand = q[grown[q[:, 1], q[:, 0]]]
-    scale = float(np.sqrt(human.sum()))
-    ring = cv2.dilate(human.astype(np.uint8), _disk(0.5 * scale)).astype(bool) & ~cv2.dilate(
-        human.astype(np.uint8), _disk(0.15 * scale)).astype(bool) & ~robot
+    # the scene ring, r_in < distance to the hand <= r_out (one exact distance transform: a
+    # dilation by a hand-arm-sized disk costs tens of ms)
+    d = cv2.distanceTransform(1 - h8, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    ring = (d <= r_out) & (d > r_in) & ~robot[ys, xs]
     if len(on_hand) < 8 or ring.sum() < 30:
         return float("nan")
-    hand_px = src[on_hand[:, 1], on_hand[:, 0]]
-    scene_px = src[ring]
+
+    def ycrcb(rgb: np.ndarray) -> np.ndarray:  # per pixel, so only the pixels used are converted
+        return cv2.cvtColor(np.ascontiguousarray(rgb.reshape(-1, 1, 3)), cv2.COLOR_RGB2YCrCb).reshape(-1, 3).astype(np.float32)
+
+    hand_px = ycrcb(source[on_hand[:, 1], on_hand[:, 0]])
+    scene_px = ycrcb(source[ys, xs][ring])
     rng = np.random.default_rng(0)
     scene_px = scene_px[rng.choice(len(scene_px), min(len(scene_px), 4000), replace=False)]
     out = q[~grown[q[:, 1], q[:, 0]] & ~robot[q[:, 1], q[:, 0]]]
     if not len(out):
         return 0.0
-    x = cv2.cvtColor(image, cv2.COLOR_RGB2YCrCb).astype(np.float32)[out[:, 1], out[:, 0]]
+    x = ycrcb(image[out[:, 1], out[:, 0]])
     hand_like = _loglik(x, hand_px) > _loglik(x, scene_px)
     return float(hand_like.sum() / len(q))
 
@@ -198,29 +210,34 @@ def composite(
                 keep = cv2.dilate(keep.astype(np.uint8), _disk(cfg.paste_dilate_px)).astype(bool) if cfg.paste_dilate_px else keep
                 bg = bg.copy()
                 bg[keep] = source[i][keep]
-        drawn = np.isin(side_of[i], np.flatnonzero(replace[i]) + 1)
-        a = np.where(drawn, rgba[i, ..., 3].astype(np.float32) / 255.0, 0.0).astype(np.float32)
-        occ = occlusion_mask(
-            depth[i], a,
-            None if occluder_mask is None else occluder_mask[i],
-            None if occluder_depth is None else occluder_depth[i],
-            cfg,
-        )
-        vis = np.where(occ, 0.0, a).astype(np.float32)
-        visible = vis >= 0.5
+        drawn = np.isin(side_of[i], np.flatnonzero(replace[i]) + 1) & (rgba[i, ..., 3] > 0)
+        img = bg.copy()  # exactly the background wherever no robot contributes
+        visible = np.zeros((H, W), bool)
+        # the robot's box, grown by the feather's reach (the radius of cv2's float Gaussian kernel), is all that changes
+        win = window(drawn, max(1, (int(round(cfg.feather_px * 8 + 1)) | 1) // 2))
+        if win is not None:
+            ys, xs = win
+            a = np.where(drawn[ys, xs], rgba[i, ys, xs, 3].astype(np.float32) / 255.0, 0.0).astype(np.float32)
+            occ = occlusion_mask(
+                depth[i][ys, xs], a,
+                None if occluder_mask is None else occluder_mask[i][ys, xs],
+                None if occluder_depth is None else occluder_depth[i][ys, xs],
+                cfg,
+            )
+            vis = np.where(occ, 0.0, a).astype(np.float32)
+            visible[ys, xs] = vis >= 0.5
+            soft = vis * cv2.GaussianBlur(vis, (0, 0), cfg.feather_px) if cfg.feather_px > 0 else vis
+            fg = rgba[i, ys, xs, :3].astype(np.float32)
+            if cfg.premultiplied:  # un-premultiply so the feathered alpha applies to true colour
+                fg = np.where(a[..., None] > 0, fg / np.maximum(a[..., None], 1e-6), 0.0)
+            b = bg[ys, xs]
+            out = soft[..., None] * fg + (1.0 - soft[..., None]) * b.astype(np.float32)
+            patch = np.clip(np.round(out), 0, 255).astype(np.uint8)
+            keep_bg = soft <= 0  # incl. occluded pixels
+            patch[keep_bg] = b[keep_bg]
+            img[ys, xs] = patch
         for k in range(S):
             robot_mask[i, k] = visible & (side_of[i] == k + 1)
-        if cfg.feather_px > 0:
-            soft = vis * cv2.GaussianBlur(vis, (0, 0), cfg.feather_px)
-        else:
-            soft = vis
-        fg = rgba[i, ..., :3].astype(np.float32)
-        if cfg.premultiplied:  # un-premultiply so the feathered alpha applies to true colour
-            fg = np.where(a[..., None] > 0, fg / np.maximum(a[..., None], 1e-6), 0.0)
-        out = soft[..., None] * fg + (1.0 - soft[..., None]) * bg.astype(np.float32)
-        img = np.clip(np.round(out), 0, 255).astype(np.uint8)
-        keep_bg = soft <= 0  # exactly the background where no robot contributes (incl. occluded)
-        img[keep_bg] = bg[keep_bg]
         image[i] = img
         for k in np.flatnonzero(replace[i]):
             if int(robot_mask[i, k].sum()) < cfg.min_visible_px:

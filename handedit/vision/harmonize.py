@@ -25,6 +25,7 @@ import numpy as np
 import pydantic
 
 from handedit.reasons import STATUS_DTYPE, Reason
+from handedit.vision.window import window
 
 
 class HarmonizeConfig(pydantic.BaseModel):
@@ -68,20 +69,34 @@ def _from_lab(lab: np.ndarray) -> np.ndarray:
 
 
 def harmonize_frame(image: np.ndarray, robot_mask: np.ndarray, cfg: HarmonizeConfig) -> np.ndarray | None:
-    """One frame; None when the robot mask is empty."""
+    """One frame; None when the robot mask is empty. Works in the robot's box grown by the
+    ring (``handedit.vision.window``), the whole frame only when the ring is too small."""
     mask = np.asarray(robot_mask, bool)
-    if not mask.any():
+    win = window(mask, cfg.edge_px + cfg.ring_px + 1)
+    if win is None:
         return None
+    out = image.copy()
+    done = _harmonize_in(image[win], mask[win], cfg, fallback_ok=False)
+    if done is None:  # too few ring pixels around the robot: the statistics come from the whole frame
+        return _harmonize_in(image, mask, cfg, fallback_ok=True)
+    out[win] = done
+    return out
+
+
+def _harmonize_in(image: np.ndarray, mask: np.ndarray, cfg: HarmonizeConfig, fallback_ok: bool) -> np.ndarray | None:
     m8 = mask.astype(np.uint8)
     region = cv2.dilate(m8, _disk(cfg.edge_px)).astype(bool) if cfg.edge_px > 0 else mask
     ring = cv2.dilate(m8, _disk(cfg.edge_px + cfg.ring_px)).astype(bool) & ~region
     if ring.sum() < cfg.min_ring_px:
+        if not fallback_ok:
+            return None
         ring = ~region
     if not ring.any() or cfg.strength == 0:
         return image.copy()
-    lab = _to_lab(image)
-    src = lab[mask]
-    ref = lab[ring]
+    ys, xs = np.nonzero(region)
+    vals = _to_lab(image[ys, xs][None])[0]  # Lab of the pixels that change (per pixel: only those are converted)
+    src = vals[mask[ys, xs]]  # the robot's pixels (region is the dilated robot), in the same order
+    ref = _to_lab(image[ring][None])[0]
     mu_s, mu_r = src.mean(0), ref.mean(0)
     if cfg.match_std:
         ratio = np.clip(ref.std(0) / np.maximum(src.std(0), 1e-3), *cfg.std_ratio_limits)
@@ -91,8 +106,6 @@ def harmonize_frame(image: np.ndarray, robot_mask: np.ndarray, cfg: HarmonizeCon
     # Interpolate between identity and the full transfer, per channel.
     scale = (1 - k) + k * ratio
     target_mean = (1 - k) * mu_s + k * mu_r
-    ys, xs = np.nonzero(region)
-    vals = lab[ys, xs]
     new = (vals - mu_s) * scale + target_mean
     new[:, 0] = np.clip(new[:, 0], 0, 100)
     # Weight: 1 on the robot, fading to 0 across the dilation band (no visible seam).
@@ -101,9 +114,7 @@ def harmonize_frame(image: np.ndarray, robot_mask: np.ndarray, cfg: HarmonizeCon
         w = np.clip(1.0 - dist[ys, xs] / (cfg.edge_px + 1.0), 0.0, 1.0)[:, None]
     else:
         w = np.ones((len(ys), 1), np.float32)
-    lab_out = lab.copy()
-    lab_out[ys, xs] = w * new + (1 - w) * vals
-    rgb = _from_lab(lab_out[ys, xs][None])[0]
+    rgb = _from_lab((w * new + (1 - w) * vals)[None])[0]
     out = image.copy()
     out[ys, xs] = np.clip(np.round(rgb), 0, 255).astype(np.uint8)
     return out
