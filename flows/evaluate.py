@@ -30,6 +30,7 @@ from handedit.metrics.frechet import fid
 from handedit.metrics.suite import EXTRAS, METRICS
 from handedit.metrics.vlm import JudgeConfig
 from handedit.storage.benchmark import write_json, write_text
+from handedit.secrets import redact_obj
 from handedit.storage.store import now_iso
 from handedit.tasks.evaluate import EvalJob, evaluate_chunk
 
@@ -144,12 +145,12 @@ def _write_toolkit(cfg: "EvaluateConfig", records: list[dict], rows: list[dict],
     from handedit.metrics.toolkit import NEURAL, frechet_distance_cleanfid
 
     by_id = {r["id"]: r for r in records}
-    table = [tr.per_sample_row(r, by_id.get(r["id"], {"id": r["id"]})) for r in rows]
+    table = redact_obj([tr.per_sample_row(r, by_id.get(r["id"], {"id": r["id"]})) for r in rows])  # error texts may carry keys
     ok = [r["id"] for r in rows if not r.get("error")]
     summary = tr.summarize(table, tr.pooled_fid(feats, ok, frechet_distance_cleanfid), cfg.editor)
     skipped_cols = sorted({c for name, cols in NEURAL.items() if name in missing_encoders(cfg.model_dir) for c in cols}
                           | ({"VLM-SC", "VLM-PQ", "VLM"} if cfg.judge is None else set()))
-    errors = [{"id": r["id"], "error": r["error"]} for r in rows if r.get("error")]
+    errors = [{"id": r["id"], "error": r["error"]} for r in table if r.get("error")]
     summary["_meta"].update(protocol="toolkit", editor=cfg.editor, manifest=str(cfg.manifest), finished=now_iso(),
                             skipped=skipped_cols, n_items=len(rows), n_errors=len(errors), errors=errors,
                             n_manifest_errors=len(line_errors),

@@ -148,7 +148,10 @@ def body(job: EvalJob) -> dict:
             row["seconds"] = time.monotonic() - t0
             rows.append(row)
         for row, fut in pending:
-            row.update(fut.result())
+            try:
+                row.update(fut.result())
+            except Exception as exc:  # the judge's inputs could not be read: a judge failure, never the chunk's
+                row["vlm_error"] = f"{type(exc).__name__}: {exc}"
     finally:
         if pool is not None:
             pool.shutdown(wait=True)
