@@ -324,3 +324,27 @@ def test_embodiment_render_contains_projected_fk_links(robots_dir, monkeypatch, 
     grown = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
     off = [l for l, (u, v) in zip(links, uv) if not (0 <= u < W and 0 <= v < H and grown[v, u])]
     assert not off, f"link origins off the silhouette: {off}"
+
+
+def test_jaka_joint_caps_are_blue_faces_of_its_grey_links(robots_dir, monkeypatch):
+    """The frozen description's blue joint caps: ``Link_k@caps`` splits each STL link mesh into
+    the faces square to a joint axis near it (blue) and the rest (metallic grey)."""
+    from handedit.embodiments import get_embodiment, render_materials, resolve_urdf
+    from handedit.embodiments.roster import GRAY, JAKA_BLUE
+    from handedit.render.model import build_model, srgb_to_linear
+
+    monkeypatch.setenv("HANDEDIT_ASSET_DIRS", str(robots_dir))
+    emb = get_embodiment("jaka_zu7_dexhand021")
+    mats = render_materials(emb)
+    assert mats[r"Link_3@caps"] == JAKA_BLUE and mats[r"Link_3"] == GRAY and not any(k.startswith("r_f_") and k.endswith("@caps") for k in mats)
+    model = build_model(resolve_urdf(emb), materials=mats)
+    blue, grey = srgb_to_linear(JAKA_BLUE), srgb_to_linear(GRAY)
+    for k in range(1, 7):
+        parts = {p.material.rgba: p for p in model.parts if p.link == f"Link_{k}"}
+        assert set(parts) == {blue, grey}, k
+        cap, body = parts[blue], parts[grey]
+        assert 0 < len(cap.faces) < 0.5 * len(body.faces)
+        tri = cap.vertices[cap.faces].astype(float)
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        assert np.median(np.abs(n).max(axis=1)) > 0.95  # flat faces square to an axis

@@ -488,8 +488,10 @@ XARM = ArmSpec(name="xArm", assets=(_XARM7_DEX, _XARM7_ERD))
 RM75 = ArmSpec(name="RM75", assets=(_RM75_DEX,))
 KUKA = ArmSpec(name="KUKA", assets=(_IIWA7_DEX,))
 PANDA = ArmSpec(name="Panda", assets=(_PANDA_ERD,))
-# their STL meshes carry no colour: the frozen descriptions' (Jaka metallic grey, RM65 smooth white)
-JAKA = ArmSpec(name="Jaka Zu7", assets=(_JAKA_ZU7,), materials={r".*": GRAY})
+# their STL meshes carry no colour: the frozen descriptions' (Jaka metallic grey with blue joint
+# caps: the end faces of its joint housings, ``LINK@caps``; RM65 smooth white)
+JAKA_BLUE: RGBA = (0.16, 0.36, 0.78, 1.0)
+JAKA = ArmSpec(name="Jaka Zu7", assets=(_JAKA_ZU7,), materials={r"Link_[1-6]@caps": JAKA_BLUE, r".*": GRAY})
 RM65 = ArmSpec(name="RM65", assets=(_RM65,), materials={r".*": WHITE})
 
 _HANDS: tuple[Embodiment, ...] = (
@@ -958,6 +960,11 @@ def render_materials(emb: Embodiment, link_names: list[str] | None = None) -> di
         rgba = emb.link_color(hand_names[link]) if link in hand_names else emb.arm.link_color(link)
         if rgba is not None:
             out[re.escape(link)] = rgba
+        if link not in hand_names:  # joint-cap colours (handedit.render.model.CAPS) of the arm's links
+            for pattern, cap in emb.arm.materials.items():
+                if pattern.endswith("@caps") and re.fullmatch(pattern[: -len("@caps")], link):
+                    out[re.escape(link) + "@caps"] = cap
+                    break
     return out
 
 

@@ -126,9 +126,44 @@ def _final_material(link: str, src: Material | None, overrides: list[tuple[re.Pa
     return src or default
 
 
+CAPS = "@caps"
+"""A ``materials`` key ``LINK_REGEX@caps`` colours the joint caps of those links: faces square
+to one of the link's joint axes (its own, and its child joints') within ``CAP_RADIUS_M`` of
+that axis, i.e. the round end faces of the joint housings (the Jaka's blue caps are faces of
+single-colour STL link meshes)."""
+CAP_RADIUS_M = 0.05
+CAP_COS = 0.95
+
+
+def _cap_faces(urdf: yourdfpy.URDF, link: str, verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(f,) bool: the faces of a link-frame mesh that are caps of the link's joint axes."""
+    axes = []
+    for j in urdf.robot.joints:
+        if j.type == "fixed" or j.axis is None:
+            continue
+        if j.child == link:
+            axes.append((np.zeros(3), np.asarray(j.axis, float)))
+        elif j.parent == link:
+            o = np.eye(4) if j.origin is None else np.asarray(j.origin, float)
+            axes.append((o[:3, 3], o[:3, :3] @ np.asarray(j.axis, float)))
+    tri = verts[faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    c = tri.mean(1)
+    out = np.zeros(len(faces), bool)
+    for point, a in axes:
+        a = a / np.linalg.norm(a)
+        d = c - point
+        radial = np.linalg.norm(d - (d @ a)[:, None] * a, axis=1)
+        out |= (np.abs(n @ a) > CAP_COS) & (radial < CAP_RADIUS_M)
+    return out
+
+
 def _compile_overrides(materials: dict[str, Rgba] | None) -> list[tuple[re.Pattern, Rgba]]:
     out = []
     for pattern, rgba in (materials or {}).items():
+        if pattern.endswith(CAPS):
+            continue
         rgba = tuple(float(c) for c in rgba)
         if len(rgba) != 4 or not all(0.0 <= c <= 1.0 for c in rgba):
             raise ValueError(f"material for {pattern!r} must be RGBA in [0, 1], got {rgba}")
@@ -246,6 +281,8 @@ def build_model(
     """Load the URDF and bake its visual meshes into per-(link, material) parts."""
     urdf = load_urdf(urdf_path)
     overrides = _compile_overrides(materials)
+    caps = [(re.compile(k[: -len(CAPS)]), _final_material("", None, [(re.compile(""), v)]))
+            for k, v in (materials or {}).items() if k.endswith(CAPS)]
     scene = urdf.scene
     graph = scene.graph
     groups: dict[tuple[str, Material], list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
@@ -270,6 +307,12 @@ def build_model(
         normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
         # A mirroring transform flips triangle winding; keep faces outward for back-face culling.
         faces = mesh.faces if np.linalg.det(R) > 0 else mesh.faces[:, ::-1]
+        cap = next((m for pattern, m in caps if pattern.fullmatch(link)), None)
+        if cap is not None:
+            on = _cap_faces(urdf, link, verts, faces)
+            if on.any():
+                groups.setdefault((link, cap), []).append((verts, normals, faces[on]))
+                faces = faces[~on]
         groups.setdefault((link, material), []).append((verts, normals, faces))
     parts = []
     for (link, material), items in groups.items():
