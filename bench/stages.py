@@ -1,10 +1,11 @@
 """Every stage's cost per frame in one process, its share, the speed goals, and the quality it keeps.
 
     .venv/bin/python bench/stages.py [--clips 2] [--frames 32] [--size 640x480]
-                                     [--embodiment allegro --embodiment xarm_ability] [--egodex 0:32]
+                                     [--embodiment allegro --embodiment xarm_ability] [--egodex 0:32 | --no-egodex]
 
-Runs the demo's synthetic clips (and, with ``--egodex A:B``, frames A:B of the shared EgoDex
-episodes at their working resolution) through the real task bodies (``handedit.tasks.clip``:
+Runs the demo's synthetic clips (and, when ``../shared/data/egodex`` is there, frames A:B of
+its EgoDex episodes at their 960x540 working resolution, with the decoder's cost per frame and
+whether any frame was decoded twice) through the real task bodies (``handedit.tasks.clip``:
 ingest -> registration -> segment -> restore_background -> retarget -> render -> composite ->
 harmonize -> qc, chunk reads and writes included) in this one process, one thread, into a
 temporary store. Per stage it prints ms per frame (per source frame up to restoration, per
@@ -67,6 +68,15 @@ def stage_costs(out: Path) -> dict[str, dict]:
     costs: dict[str, dict] = {}
     for unit in iter_units(root):
         recs = read_records(root, unit).values()
+        if unit.stage == "ingest" and unit.clip.startswith("egodex-"):  # decoding, apart from synthetic rendering
+            d = costs.setdefault("ingest (EgoDex)", {"seconds": 0.0, "frames": 0, "units": set(), "decoded": 0,
+                                                     "delivered": 0, "decode_seconds": 0.0})
+            d["seconds"] += sum(r.seconds for r in recs)
+            d["frames"] += sum(r.stop - r.start for r in recs)
+            for r in recs:
+                for k in ("decoded", "delivered", "decode_seconds"):
+                    d[k] += r.extra.get("decode", {}).get(k, 0)
+            continue
         c = costs.setdefault(unit.stage, {"seconds": 0.0, "frames": 0, "units": set()})
         c["seconds"] += sum(r.seconds for r in recs)
         key = (unit.clip, unit.embodiment)
@@ -107,13 +117,16 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=32)
     ap.add_argument("--size", default="640x480")
     ap.add_argument("--embodiment", action="append", help="default: allegro and xarm_ability")
-    ap.add_argument("--egodex", help="also frames A:B of the shared EgoDex episodes (e.g. 0:32)")
+    ap.add_argument("--egodex", default="0:32", help="frames A:B of the shared EgoDex episodes, when present (default 0:32)")
+    ap.add_argument("--no-egodex", action="store_true", help="synthetic clips only")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     from handedit.sources.synthetic import make_clip_specs
 
     w, h = (int(v) for v in args.size.split("x"))
     specs = list(make_clip_specs(args.clips, seed=args.seed, n_frames=args.frames, width=w, height=h))
+    if args.no_egodex or not EGODEX.is_dir():
+        args.egodex = None
     if args.egodex:
         from handedit.sources import EgoDexTree
         from handedit.sources.egodex import parse_frames
@@ -133,13 +146,17 @@ def main() -> None:
           f", embodiments {embodiments}; one process, one thread; {wall:.1f} s wall")
     print(f"{'stage':22}{'ms/frame':>10}{'share':>8}   per")
     ms = {}
-    for stage in PER_SOURCE + PER_EMBODIMENT:
+    for stage in ("ingest (EgoDex)", *PER_SOURCE, *PER_EMBODIMENT):
         c = costs.get(stage)
         if not c or not c["frames"]:
             continue
         ms[stage] = 1000 * c["seconds"] / c["frames"]
-        per = "source frame" if stage in PER_SOURCE else "frame x embodiment"
+        per = "source frame" if stage in PER_SOURCE or stage.startswith("ingest") else "frame x embodiment"
         print(f"{stage:22}{ms[stage]:>10.1f}{100 * c['seconds'] / total:>7.1f}%   {per}")
+    ego = costs.get("ingest (EgoDex)")
+    if ego:
+        print(f"EgoDex decode: {1000 * ego['decode_seconds'] / max(ego['delivered'], 1):.1f} ms per frame delivered; "
+              f"{ego['decoded']} frames decoded for {ego['delivered']} delivered (equal: none decoded twice)")
     r = ms.get("render", float("nan"))
     after = sum(ms.get(s, 0.0) for s in ("composite", "harmonize", "qc"))
     print("\ngoals (issue 17)                                  measured   goal")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import zarr
 from prefect import task
 
@@ -12,6 +14,8 @@ from handedit.tasks.common import ChunkJob, StageOutput, execute
 
 def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     source = open_source_json(job.context["source"])
+    video = getattr(source, "video", None)  # video sources: what this chunk cost the decoder
+    before = replace(video.stats) if video is not None else None
     chunk = source.read(job.start, job.stop)
     arrays = {
         "frames": chunk.frames,
@@ -27,7 +31,8 @@ def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     if job.context.get("has_gt"):
         arrays.update({f"gt_{k}": v for k, v in chunk.gt.items()})
     status, details = frame_status(chunk)
-    return StageOutput(arrays, status, method=type(source).__name__, details=details)
+    extra = {"decode": video.stats.since(before)} if video is not None else {}
+    return StageOutput(arrays, status, method=type(source).__name__, details=details, extra=extra)
 
 
 @task(**stage_options("ingest"))

@@ -230,3 +230,16 @@ def test_spec_via_package_parser(small_avi):
 
     spec = parse_spec({"kind": "video", "path": str(small_avi)})
     assert isinstance(spec, VideoSpec) and spec.open().info().n_frames == 20
+
+
+def test_consecutive_chunks_decode_each_frame_once(real_video):
+    """A worker reading chunk k then k+1 keeps its decoder: every frame is decoded once, and the
+    counts (what ingest records per chunk) say so; a jump ahead seeks instead of decoding the gap."""
+    src = VideoSpec(path=real_video).open()
+    stats = src.video.stats
+    for a in (0, 16, 32):
+        src.read(a, a + 16)
+    assert stats.decoded == stats.delivered == 48 and stats.seconds > 0
+    before = (stats.decoded, stats.delivered)
+    src.read(300, 316)  # far ahead: a seek, then at most the frames from the keyframe on
+    assert stats.delivered - before[1] == 16 and 16 <= stats.decoded - before[0] < 300 - 48

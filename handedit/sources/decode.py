@@ -18,6 +18,7 @@ Every problem with the file itself raises ``SourceError`` naming the file and th
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,6 +36,21 @@ def _fourcc(value: float) -> str:
     code = int(value)
     chars = "".join(chr((code >> (8 * i)) & 0xFF) for i in range(4))
     return chars if chars.isprintable() else str(code)
+
+
+@dataclass
+class DecodeStats:
+    """Frames the decoder produced (``decoded``: every grab, including frames passed over on the
+    way to a chunk's start) against frames delivered, and the seconds spent: ``decoded ==
+    delivered`` means no frame was decoded twice or in vain."""
+
+    decoded: int = 0
+    delivered: int = 0
+    seconds: float = 0.0
+
+    def since(self, before: "DecodeStats") -> dict:
+        return {"decoded": self.decoded - before.decoded, "delivered": self.delivered - before.delivered,
+                "decode_seconds": round(self.seconds - before.seconds, 4)}
 
 
 @dataclass(frozen=True)
@@ -61,6 +77,7 @@ class VideoReader:
         self.size = tuple(resize) if resize else (self.probe.width, self.probe.height)  # (W, H) delivered
         self._cap: cv2.VideoCapture | None = None
         self._next: int | None = None  # index of the frame the open decoder yields next
+        self.stats = DecodeStats()  # what this reader decoded (``read`` calls only, not the probe)
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
@@ -131,10 +148,13 @@ class VideoReader:
         frames = np.zeros((n, h, w, 3), np.uint8)
         frame_ok = np.zeros(n, bool)
         if n:
+            t0 = time.perf_counter()
             try:
                 self._decode(start, stop, frames, frame_ok)
             except cv2.error:
                 self._close()  # a decoder error mid-chunk: keep what was decoded, drop the handle
+            self.stats.seconds += time.perf_counter() - t0
+            self.stats.delivered += int(frame_ok.sum())
         return frames, frame_ok
 
     def _close(self) -> None:
@@ -187,6 +207,7 @@ class VideoReader:
                     return first
                 continue
             failures = 0
+            self.stats.decoded += 1
             idx = self._pts_index(cap, self.probe.fps) if use_pts else int(expected or 0)
             expected = idx + 1
             self._next = idx + 1
