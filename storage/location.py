@@ -29,6 +29,8 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
+from handedit.files import atomic_write  # noqa: F401  (re-exported: storage's callers use it from here)
+
 import fsspec
 
 STORE_NAME = "handedit.zarr"
@@ -248,18 +250,3 @@ def staged_dir(final: str | os.PathLike):
     shutil.rmtree(old, ignore_errors=True)
 
 
-def atomic_write(path: str | os.PathLike, data: bytes) -> Path:
-    """A local file written whole or not at all (a temporary file beside it, then a rename),
-    readable by the other users of a shared folder (mkstemp's 0600 would hide it)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path

@@ -46,7 +46,6 @@ from __future__ import annotations
 import functools
 import hashlib
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -55,15 +54,21 @@ from lxml import etree
 
 from handedit.embodiments.errors import BrokenUrdf, EmbodimentError
 from handedit.embodiments.urdf import resolve_mesh_filename
+from handedit.files import atomic_write
 
 CACHE_ENV = "HANDEDIT_CACHE_DIR"
 MOUNT_JOINT = "handedit_mount"
 CLASH_PREFIX = "hand_"
 
 
+def cache_root() -> Path:
+    """``$HANDEDIT_CACHE_DIR`` or ``~/.cache/handedit``: composed, derived and mirrored URDFs
+    and fetched assets live below it."""
+    return Path(os.environ.get(CACHE_ENV) or str(Path.home() / ".cache" / "handedit")).expanduser()
+
+
 def _cache_dir() -> Path:
-    root = os.environ.get(CACHE_ENV) or str(Path.home() / ".cache" / "handedit")
-    d = Path(root).expanduser() / "composed"
+    d = cache_root() / "composed"
     d.mkdir(parents=True, exist_ok=True)
     return d
 
@@ -184,10 +189,7 @@ def compose_urdf(
     key = hashlib.sha256(text).hexdigest()[:16]
     out = _cache_dir() / f"{arm.get('name')}-{key}.urdf"
     if not out.is_file():
-        fd, tmp = tempfile.mkstemp(dir=out.parent, suffix=".tmp")
-        with os.fdopen(fd, "wb") as f:
-            f.write(text)
-        os.replace(tmp, out)  # atomic: concurrent workers write identical bytes
+        atomic_write(out, text)  # concurrent workers write identical bytes
     return out, {**link_map, **joint_map}
 
 
@@ -330,8 +332,5 @@ def arm_reach_urdf(arm) -> Path:
     text = etree.tostring(root, xml_declaration=True, encoding="utf-8")
     out = _cache_dir() / f"arm-{hashlib.sha256(text).hexdigest()[:16]}.urdf"
     if not out.is_file():
-        fd, tmp = tempfile.mkstemp(dir=out.parent, suffix=".tmp")
-        with os.fdopen(fd, "wb") as f:
-            f.write(text)
-        os.replace(tmp, out)
+        atomic_write(out, text)
     return out

@@ -15,15 +15,14 @@ inputs, written atomically, so concurrent workers agree on it.
 from __future__ import annotations
 
 import hashlib
-import os
 import re
-import tempfile
 from pathlib import Path
 
 from lxml import etree
 
 from handedit.embodiments import linkage
 from handedit.embodiments.errors import EmbodimentError
+from handedit.files import atomic_write
 
 
 def needs_derivation(asset) -> bool:
@@ -34,13 +33,13 @@ def derived_urdf(path: Path, asset) -> Path:
     """The asset's URDF with its couplings and hidden visuals applied (``path`` if none)."""
     if not needs_derivation(asset):
         return path
-    from handedit.embodiments.compose import _absolutize_meshes, _cache_dir, _parse
+    from handedit.embodiments.compose import _absolutize_meshes, _parse, cache_root
 
     st = path.stat()
     key = hashlib.blake2b(repr((str(path), st.st_size, st.st_mtime_ns, asset.couplings, asset.hidden_visuals,
                               asset.linkages, linkage.POLY_DEGREE)).encode(),
                           digest_size=8).hexdigest()
-    out = _cache_dir().parent / "derived" / f"{path.stem}-{key}.urdf"
+    out = cache_root() / "derived" / f"{path.stem}-{key}.urdf"
     if out.is_file():
         return out
     tree = _parse(path)
@@ -74,9 +73,4 @@ def derived_urdf(path: Path, asset) -> Path:
             if pattern.fullmatch(link.get("name", "")):
                 for v in link.findall("visual"):
                     link.remove(v)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=".tmp-", suffix=".urdf")
-    with os.fdopen(fd, "wb") as f:
-        f.write(etree.tostring(tree, pretty_print=True, xml_declaration=True, encoding="utf-8"))
-    os.replace(tmp, out)
-    return out
+    return atomic_write(out, etree.tostring(tree, pretty_print=True, xml_declaration=True, encoding="utf-8"))

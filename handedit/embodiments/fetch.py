@@ -33,15 +33,18 @@ import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from handedit.digests import file_sha256
 from handedit.embodiments.asset_table import FOLDERS
+from handedit.files import atomic_write
 
 BASE_URL = "https://codeload.github.com"
 CHUNK = 1 << 20
 
 
 def default_dest() -> Path:
-    root = os.environ.get("HANDEDIT_CACHE_DIR") or str(Path.home() / ".cache" / "handedit")
-    return Path(root).expanduser() / "assets"
+    from handedit.embodiments.compose import cache_root
+
+    return cache_root() / "assets"
 
 
 @dataclass
@@ -64,20 +67,12 @@ class FetchReport:
         return all(r.status != "failed" for r in self.results)
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(CHUNK), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def _missing(dest: Path, folder: str, spec: dict) -> dict[str, str]:
     """{path in folder: sha256} of the files not yet in place with the right digest."""
     out = {}
     for rel, digest in spec["files"].items():
         p = dest / folder / rel
-        if not (p.is_file() and _sha256(p) == digest):
+        if not (p.is_file() and file_sha256(p) == digest):
             out[rel] = digest
     return out
 
@@ -121,10 +116,7 @@ def _rewrite_packages(dest: Path, folder: str, spec: dict) -> None:
         for pkg, pkg_dir in spec["packages"].items():
             rel = os.path.relpath(dest / folder / pkg_dir, src.parent).replace(os.sep, "/")
             text = text.replace(f"package://{pkg}/", f"{rel}/")
-        out = src.with_name(src.stem + "_rel.urdf")
-        tmp = out.with_name(f".{out.name}.tmp")
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, out)
+        atomic_write(src.with_name(src.stem + "_rel.urdf"), text.encode("utf-8"))
 
 
 def _extract(archive: Path, wanted: dict[str, tuple[str, str, str]], dest: Path) -> dict[str, str]:
@@ -228,7 +220,7 @@ def build_table(robots_dir: Path, sources: dict[str, tuple[str, str, str]]) -> d
     out = {}
     for folder, (repo, commit, repo_path) in sorted(sources.items()):
         root = robots_dir / folder
-        files = {p.relative_to(root).as_posix(): _sha256(p) for p in sorted(root.rglob("*"))
+        files = {p.relative_to(root).as_posix(): file_sha256(p) for p in sorted(root.rglob("*"))
                  if p.is_file() and not p.name.endswith("_rel.urdf")}
         keys = sorted(k for k, v in manifest.items() if v["urdf"].startswith(folder + "/"))
         rel = sorted(p.relative_to(root).as_posix().replace("_rel.urdf", ".urdf") for p in root.rglob("*_rel.urdf"))

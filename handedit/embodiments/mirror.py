@@ -32,13 +32,13 @@ from __future__ import annotations
 
 import hashlib
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 from lxml import etree
 
-from handedit.embodiments.compose import _absolutize_meshes, _cache_dir, _parse, matrix_to_xyz_rpy
+from handedit.embodiments.compose import _absolutize_meshes, _parse, cache_root, matrix_to_xyz_rpy
+from handedit.files import atomic_write
 
 ROOT_MIRROR = np.diag([1.0, -1.0, 1.0, 1.0])
 CAMERA_MIRROR = np.diag([-1.0, 1.0, 1.0, 1.0])
@@ -98,13 +98,9 @@ def mirror_urdf(urdf_path: str | os.PathLike) -> Path:
     mirror_tree(root)
     root.set("name", f"{root.get('name', 'robot')}__mirrored")
     text = etree.tostring(root, pretty_print=True, xml_declaration=True, encoding="utf-8")
-    out = _cache_dir().parent / "mirrored" / f"{path.stem}-{hashlib.sha256(text).hexdigest()[:16]}.urdf"
+    out = cache_root() / "mirrored" / f"{path.stem}-{hashlib.sha256(text).hexdigest()[:16]}.urdf"
     if not out.is_file():
-        out.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=out.parent, suffix=".tmp")
-        with os.fdopen(fd, "wb") as f:
-            f.write(text)
-        os.replace(tmp, out)  # atomic: concurrent workers write identical bytes
+        atomic_write(out, text)  # concurrent workers write identical bytes
     return out
 
 

@@ -82,13 +82,17 @@ def ssim_mean(s: np.ndarray, mask: np.ndarray | None = None) -> float:
 
 
 def bbox(mask: np.ndarray, margin: int = 0) -> tuple[slice, slice] | None:
-    """Bounding box of a mask as slices (None when empty), grown by ``margin`` pixels."""
-    ys, xs = np.nonzero(mask)
-    if ys.size == 0:
+    """Bounding box of a mask as slices (None when empty), grown by ``margin`` pixels and clipped.
+
+    Also the window of the per-pixel stages (compositing, harmonization, the residue check):
+    every neighbourhood operation they use reaches at most a known radius from the mask, so
+    working inside its box grown by that radius gives the full frame's result exactly."""
+    rows, cols = np.flatnonzero(np.any(mask, axis=1)), np.flatnonzero(np.any(mask, axis=0))
+    if not len(rows):
         return None
     h, w = mask.shape[:2]
-    return (slice(max(0, ys.min() - margin), min(h, ys.max() + 1 + margin)),
-            slice(max(0, xs.min() - margin), min(w, xs.max() + 1 + margin)))
+    return (slice(max(0, int(rows[0]) - margin), min(h, int(rows[-1]) + 1 + margin)),
+            slice(max(0, int(cols[0]) - margin), min(w, int(cols[-1]) + 1 + margin)))
 
 
 def crop(image: np.ndarray, box: tuple[slice, slice]) -> np.ndarray:

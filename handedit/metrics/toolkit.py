@@ -59,6 +59,8 @@ import numpy as np
 from PIL import Image
 from scipy.ndimage import binary_dilation, uniform_filter
 
+from handedit.metrics.similarity import bbox, crop  # bbox + pad as slices, clipped to the image
+
 GENERIC_METRICS = ["Full-PSNR", "Full-SSIM", "Full-LPIPS", "ROI-PSNR", "ROI-SSIM", "ROI-LPIPS",
                    "BG-PSNR", "BG-SSIM", "BG-LPIPS"]
 VLM_METRICS = ["VLM-SC", "VLM-PQ", "VLM", "VLM-robotness", "VLM-target_embodiment_match",
@@ -125,19 +127,6 @@ def resize_mask(mask: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
     if mask.shape[:2] == (h, w):
         return (mask > 0).astype(np.uint8)
     return (np.asarray(Image.fromarray((mask > 0).astype(np.uint8) * 255).resize((w, h), Image.NEAREST)) > 127).astype(np.uint8)
-
-
-def bbox(mask: np.ndarray, pad: int = 0) -> tuple[int, int, int, int] | None:
-    ys, xs = np.where(mask > 0)
-    if len(xs) == 0:
-        return None
-    return (max(0, int(ys.min()) - pad), min(mask.shape[0], int(ys.max()) + 1 + pad),
-            max(0, int(xs.min()) - pad), min(mask.shape[1], int(xs.max()) + 1 + pad))
-
-
-def crop(image: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
-    y0, y1, x0, x1 = box
-    return image[y0:y1, x0:x1]
 
 
 def crop_to_mask(image: np.ndarray, mask: np.ndarray, pad: int) -> np.ndarray:
@@ -476,10 +465,9 @@ def score_sample(s: Sample, neural: Neural, cfg: ToolkitConfig = ToolkitConfig()
     if f_gt is not None:
         feats["full_gt"] = f_gt
         feats["full_pred"] = neural.inception(np.asarray(Image.open(s.pred_path).convert("RGB")))
-        roi_box = bbox(roi, cfg.roi_pad)
-        if roi_box is not None:
-            feats["roi_gt"] = neural.inception(to_uint8(crop(gt, roi_box)))
-            feats["roi_pred"] = neural.inception(to_uint8(crop(pred, roi_box)))
+        if box is not None:
+            feats["roi_gt"] = neural.inception(to_uint8(crop(gt, box)))
+            feats["roi_pred"] = neural.inception(to_uint8(crop(pred, box)))
     return row, feats
 
 

@@ -30,7 +30,7 @@ import pydantic
 
 from handedit.keypoints import N_JOINTS, PARENT, WRIST
 from handedit.reasons import STATUS_DTYPE, Reason, per_frame
-from handedit.vision.window import window
+from handedit.metrics.similarity import bbox
 
 
 class CompositeConfig(pydantic.BaseModel):
@@ -133,7 +133,7 @@ def human_residue(image: np.ndarray, source: np.ndarray, human: np.ndarray, robo
         return float("nan")
     scale = float(np.sqrt(area))
     r_out, r_in = max(1, int(round(0.5 * scale))), max(1, int(round(0.15 * scale)))
-    ys, xs = window(human, r_out + 1)  # every neighbourhood below stays inside it
+    ys, xs = bbox(human, r_out + 1)  # every neighbourhood below stays inside it
     h8 = human[ys, xs].astype(np.uint8)
     grown_w = cv2.dilate(h8, _disk(2)).astype(bool)
     grown = np.zeros((H, W), bool)
@@ -214,7 +214,7 @@ def composite(
         img = bg.copy()  # exactly the background wherever no robot contributes
         visible = np.zeros((H, W), bool)
         # the robot's box, grown by the feather's reach (the radius of cv2's float Gaussian kernel), is all that changes
-        win = window(drawn, max(1, (int(round(cfg.feather_px * 8 + 1)) | 1) // 2))
+        win = bbox(drawn, max(1, (int(round(cfg.feather_px * 8 + 1)) | 1) // 2))
         if win is not None:
             ys, xs = win
             a = np.where(drawn[ys, xs], rgba[i, ys, xs, 3].astype(np.float32) / 255.0, 0.0).astype(np.float32)

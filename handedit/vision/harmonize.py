@@ -25,7 +25,7 @@ import numpy as np
 import pydantic
 
 from handedit.reasons import STATUS_DTYPE, Reason
-from handedit.vision.window import window
+from handedit.metrics.similarity import bbox
 
 
 class HarmonizeConfig(pydantic.BaseModel):
@@ -70,9 +70,9 @@ def _from_lab(lab: np.ndarray) -> np.ndarray:
 
 def harmonize_frame(image: np.ndarray, robot_mask: np.ndarray, cfg: HarmonizeConfig) -> np.ndarray | None:
     """One frame; None when the robot mask is empty. Works in the robot's box grown by the
-    ring (``handedit.vision.window``), the whole frame only when the ring is too small."""
+    ring (``handedit.metrics.similarity.bbox``), the whole frame only when the ring is too small."""
     mask = np.asarray(robot_mask, bool)
-    win = window(mask, cfg.edge_px + cfg.ring_px + 1)
+    win = bbox(mask, cfg.edge_px + cfg.ring_px + 1)
     if win is None:
         return None
     out = image.copy()
