@@ -165,17 +165,15 @@ def main() -> int:
                     help="only the side-by-side with dex-retargeting, run by this interpreter (a venv with "
                          "`pip install dex-retargeting==0.5.0` and torch CPU; default $DEX_RETARGETING_PYTHON)")
     args = ap.parse_args()
+    from handedit.flows.commands.retarget import load_keypoints
+
+    trajectories = [(f, *load_keypoints(f), None) for f in args.trajectory]
     if args.against_dex_retargeting is not None:
         if not args.against_dex_retargeting:
             raise SystemExit("--against-dex-retargeting needs the python of a venv with dex-retargeting 0.5.0: "
                              "python3 -m venv /tmp/dexenv && /tmp/dexenv/bin/pip install torch --index-url "
-                             "https://download.pytorch.org/whl/cpu dex-retargeting==0.5.0")
-        clips = synthetic_keypoints(args.clips, args.frames)
-        for f in args.trajectory:
-            from handedit.flows.commands.retarget import load_keypoints
-
-            kp, valid = load_keypoints(f)
-            clips.append((f, kp, valid, None))
+                             "https://download.pytorch.org/whl/cpu && /tmp/dexenv/bin/pip install dex-retargeting==0.5.0 six")
+        clips = synthetic_keypoints(args.clips, args.frames) + trajectories
         against_dex_retargeting(clips, args.against_dex_retargeting, Path(os.environ["HANDEDIT_ASSET_DIRS"].split(os.pathsep)[0]))
         return 0
     cfg = RetargetConfig()
@@ -184,11 +182,8 @@ def main() -> int:
     print_table(f"synthetic: {args.clips} clips x {args.frames} frames (exact keypoints), warm-started", {e: bench_hand(e, clips, cfg) for e in ids})
     cold = cfg.model_copy(update={"warm_start": False})
     print_table("same, cold (hybrid vector+position init every frame)", {e: bench_hand(e, clips, cold) for e in ids})
-    for f in args.trajectory:
-        from handedit.flows.commands.retarget import load_keypoints
-
-        kp, valid = load_keypoints(f)
-        print_table(f"trajectory {f}", {e: bench_hand(e, [(f, kp, valid, None)], cfg) for e in ids})
+    for name, kp, valid, _ in trajectories:
+        print_table(f"trajectory {name}", {e: bench_hand(e, [(name, kp, valid, None)], cfg) for e in ids})
     if args.hand_arm:
         bench_hand_arm(clips)
     return 0

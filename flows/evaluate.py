@@ -22,6 +22,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from handedit.benchmark.targets import toolkit_reference_bank
 from handedit.flows.benchmark import load_manifest
 from handedit.flows.config import ClusterConfig
 from handedit.metrics.embodied import EmbodiedConfig
@@ -89,7 +90,7 @@ def evaluate(cfg: EvaluateConfig) -> dict:
     for e in line_errors:
         rows.append({"id": e["id"] or f"line-{e['line']}", "track": None, "error": e["error"]})
     if cfg.protocol == "toolkit":
-        return _write_toolkit(cfg, records, rows, feats, skipped, line_errors, logger)
+        return _write_toolkit(cfg, records, rows, feats, skipped, missing, line_errors, logger)
     summary = summarise(rows, feats, cfg.editor, skipped)
     summary.update(manifest=str(cfg.manifest), finished=now_iso(), n_manifest_errors=len(line_errors))
     cfg.out.mkdir(parents=True, exist_ok=True)
@@ -104,41 +105,16 @@ def evaluate(cfg: EvaluateConfig) -> dict:
 
 
 def _attach_reference_bank(items: list, records: list[dict]) -> None:
-    """The toolkit's per-target reference bank: an item without reference views of its own
-    uses every view any item of the same target lists (its ``_build_target_reference_bank``)."""
-    bank: dict[tuple[str, str], list[list[str]]] = {}
-    for it in items:
-        key = (it.replacement_scope, it.embodiment or it.target_name)
-        for ref, mask in zip(it.urdf_ref_paths, it.urdf_mask_paths + [""] * len(it.urdf_ref_paths)):
-            if [ref, mask] not in bank.setdefault(key, []):
-                bank[key].append([ref, mask])
-    for it, rec in zip(items, records):
-        if not it.urdf_ref_paths:
-            rec["toolkit_refs"] = bank.get((it.replacement_scope, it.embodiment or it.target_name), [])
-    # the judge's distractors: the first view of up to three other targets, the same track's first,
-    # in the order of the toolkit's "group:target" keys
-    first = {key: views[0][0] for key, views in bank.items() if views}
-
-    def order(key):
-        from handedit.embodiments import get_embodiment
-
-        scope, emb = key
-        try:
-            name = get_embodiment(emb).name
-        except Exception:  # a target outside the roster keeps its own spelling
-            name = emb
-        return f"{'hand_only' if scope == 'hand' else 'hand_arm'}:{name}"
-
-    keys = sorted(first, key=order)
-    for it, rec in zip(items, records):
-        own = (it.replacement_scope, it.embodiment or it.target_name)
-        same = [k for k in keys if k != own and k[0] == own[0]]
-        other = [k for k in keys if k != own and k[0] != own[0]]
-        rec["toolkit_distractors"] = [first[k] for k in (same + other if len(same) < 3 else same)[:3]]
+    """Each record gets the toolkit's reference views and judge distractors of its item
+    (``handedit.benchmark.targets.toolkit_reference_bank``)."""
+    for rec, (refs, distractors) in zip(records, toolkit_reference_bank(items)):
+        rec["toolkit_distractors"] = distractors
+        if refs is not None:
+            rec["toolkit_refs"] = refs
 
 
 def _write_toolkit(cfg: "EvaluateConfig", records: list[dict], rows: list[dict], feats: dict, skipped: list[str],
-                   line_errors: list[dict], logger) -> dict:
+                   missing: dict[str, str], line_errors: list[dict], logger) -> dict:
     """per_sample.jsonl/.csv, summary.json, leaderboard.csv/.md as the toolkit writes them, and
     report_summary.json (the paper protocol's shape, from the same numbers) for ``bench report``."""
     from handedit.benchmark import toolkit_report as tr
@@ -148,7 +124,7 @@ def _write_toolkit(cfg: "EvaluateConfig", records: list[dict], rows: list[dict],
     table = redact_obj([tr.per_sample_row(r, by_id.get(r["id"], {"id": r["id"]})) for r in rows])  # error texts may carry keys
     ok = [r["id"] for r in rows if not r.get("error")]
     summary = tr.summarize(table, tr.pooled_fid(feats, ok, frechet_distance_cleanfid), cfg.editor)
-    skipped_cols = sorted({c for name, cols in NEURAL.items() if name in missing_encoders(cfg.model_dir) for c in cols}
+    skipped_cols = sorted({c for name, cols in NEURAL.items() if name in missing for c in cols}
                           | ({"VLM-SC", "VLM-PQ", "VLM"} if cfg.judge is None else set()))
     errors = [{"id": r["id"], "error": r["error"]} for r in table if r.get("error")]
     summary["_meta"].update(protocol="toolkit", editor=cfg.editor, manifest=str(cfg.manifest), finished=now_iso(),

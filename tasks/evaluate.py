@@ -22,7 +22,6 @@ from handedit.metrics import toolkit, vlm_toolkit
 from handedit.metrics.embodied import EmbodiedConfig
 from handedit.metrics.encoders import Encoders, load_encoders
 from handedit.metrics.suite import ItemImages, item_images, score_item
-from handedit.metrics.toolkit import Sample
 from handedit.metrics.vlm import JudgeConfig, VlmJudge
 from handedit.storage.benchmark import read_image, read_mask
 from handedit.tasks.common import RETRIES, RETRY_DELAYS, retry_transient
@@ -65,14 +64,10 @@ def load_item(it: ManifestItem) -> tuple[ItemImages, str]:
     )
 
 
-def toolkit_sample(it: ManifestItem) -> Sample:
-    """The item's files for the toolkit protocol; reference views: the item's own, else its
-    target's views collected over the manifest (``toolkit_refs``, set by the flow)."""
-    refs = list(zip(it.urdf_ref_paths, it.urdf_mask_paths + [""] * len(it.urdf_ref_paths)))
-    return Sample(id=it.id, pred_path=it.pred_path, src_path=it.src_path, gt_path=it.gt_path,
-                  human_mask_path=it.human_mask_path, robot_mask_path=it.robot_mask_path, bg_mask_path=it.bg_mask_path,
-                  object_mask_path=it.object_mask_path, test_mask_path=it.test_mask_path, gt_mask_path=it.gt_mask_path,
-                  refs=refs or [tuple(r) for r in it.extra.get("toolkit_refs", [])])
+def toolkit_refs(it: ManifestItem) -> list[tuple[str, str]]:
+    """The item's reference views; without its own, its target's views collected over the
+    manifest (``toolkit_refs``, set by the flow), as the toolkit's per-target bank does."""
+    return toolkit.own_refs(it) or [tuple(r) for r in it.extra.get("toolkit_refs", [])]
 
 
 def _paper_judge(src, pred, ref, text):
@@ -83,7 +78,7 @@ def _paper_judge(src, pred, ref, text):
 
 
 def _toolkit_judge(it: ManifestItem, text: str):
-    refs = it.urdf_ref_paths[:1] or [r[0] for r in it.extra.get("toolkit_refs", [])[:1]]
+    refs = [r[0] for r in toolkit_refs(it)[:1]]
 
     def mask(path: str):
         return read_mask(path) if path else None
@@ -103,8 +98,8 @@ def _score(job: EvalJob, it: ManifestItem, enc: Encoders, row: dict):
     for this item: judge -> row fields, or None without a judge)."""
     text = it.instruction or instruction_for_target(it.replacement_scope, it.target_name)
     if job.protocol == "toolkit":
-        metrics, f = toolkit.score_sample(toolkit_sample(it), _neural(job.model_dir),
-                                          toolkit.ToolkitConfig(roi_dilate_px=job.roi_dilate_px))
+        metrics, f = toolkit.score_sample(it, _neural(job.model_dir), toolkit.ToolkitConfig(roi_dilate_px=job.roi_dilate_px),
+                                          toolkit_refs(it))
         if metrics.get("error"):
             raise FileNotFoundError(metrics.pop("error"))
         row.update(metrics)

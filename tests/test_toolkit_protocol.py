@@ -14,6 +14,7 @@ from skimage.color import rgb2hsv, rgb2lab
 from skimage.metrics import structural_similarity
 
 from _bench_onnx import EMB_W, TOOLKIT_SIZES, write_encoders
+from handedit.benchmark.manifest import ManifestItem
 from handedit.metrics import toolkit as tk
 from handedit.metrics.encoders import Encoders, load_encoders
 
@@ -44,11 +45,12 @@ def files(tmp_path):
     return {"gt": gt, "pred": pred, "roi": roi, "robot": robot > 0, "obj": obj > 0, "paths": paths, "dir": tmp_path}
 
 
-def _sample(f, **kw) -> tk.Sample:
+def _sample(f, **kw) -> ManifestItem:
     p = f["paths"]
-    base = dict(id="a", pred_path=p["pred"], src_path=p["src"], gt_path=p["gt"], human_mask_path=p["human"],
-                robot_mask_path=p["robot"], gt_mask_path=p["robot"], object_mask_path=p["obj"], refs=[(p["gt"], p["robot"])])
-    return tk.Sample(**{**base, **kw})
+    base = dict(id="a", replacement_scope="hand", target_name="Allegro", pred_path=p["pred"], src_path=p["src"],
+                gt_path=p["gt"], human_mask_path=p["human"], robot_mask_path=p["robot"], gt_mask_path=p["robot"],
+                object_mask_path=p["obj"], urdf_ref_paths=[p["gt"]], urdf_mask_paths=[p["robot"]])
+    return ManifestItem(**{**base, **kw})
 
 
 def test_generic_metrics_match_hand_computation_and_skimage(files):

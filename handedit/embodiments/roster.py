@@ -33,6 +33,7 @@ from handedit.keypoints import FINGERS
 
 ASSET_DIRS_ENV = "HANDEDIT_ASSET_DIRS"
 RGBA = tuple[float, float, float, float]
+CAPS = "@caps"  # a materials key LINK_REGEX@caps colours those links' joint caps (handedit.render.model)
 Kind = Literal["wrist", "cmc", "mcp", "pip", "dip", "tip"]
 
 
@@ -960,10 +961,10 @@ def render_materials(emb: Embodiment, link_names: list[str] | None = None) -> di
         rgba = emb.link_color(hand_names[link]) if link in hand_names else emb.arm.link_color(link)
         if rgba is not None:
             out[re.escape(link)] = rgba
-        if link not in hand_names:  # joint-cap colours (handedit.render.model.CAPS) of the arm's links
+        if link not in hand_names:  # joint-cap colours of the arm's links
             for pattern, cap in emb.arm.materials.items():
-                if pattern.endswith("@caps") and re.fullmatch(pattern[: -len("@caps")], link):
-                    out[re.escape(link) + "@caps"] = cap
+                if pattern.endswith(CAPS) and re.fullmatch(pattern[: -len(CAPS)], link):
+                    out[re.escape(link) + CAPS] = cap
                     break
     return out
 

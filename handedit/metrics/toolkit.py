@@ -52,14 +52,18 @@ them: ``Fidelity-ID``, ``Fidelity``) stay NaN, listed in the run's ``skipped``.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from PIL import Image
 from scipy.ndimage import binary_dilation, uniform_filter
 
 from handedit.metrics.similarity import bbox, crop  # bbox + pad as slices, clipped to the image
+
+if TYPE_CHECKING:
+    from handedit.benchmark.manifest import ManifestItem
 
 GENERIC_METRICS = ["Full-PSNR", "Full-SSIM", "Full-LPIPS", "ROI-PSNR", "ROI-SSIM", "ROI-LPIPS",
                    "BG-PSNR", "BG-SSIM", "BG-LPIPS"]
@@ -338,21 +342,9 @@ def frechet_distance_cleanfid(f1: np.ndarray, f2: np.ndarray) -> float:
 # ---------------------------------------------------------------------------------------
 # one sample
 
-@dataclass
-class Sample:
-    """A manifest item's files as the toolkit reads them (paths already resolved)."""
-
-    id: str
-    pred_path: str
-    src_path: str = ""
-    gt_path: str = ""
-    human_mask_path: str = ""
-    robot_mask_path: str = ""
-    bg_mask_path: str = ""
-    object_mask_path: str = ""
-    test_mask_path: str = ""
-    gt_mask_path: str = ""
-    refs: list[tuple[str, str]] = field(default_factory=list)  # (image, mask or "") reference views
+def own_refs(item: "ManifestItem") -> list[tuple[str, str]]:
+    """An item's own reference views as (image, mask or "") pairs (masks are optional)."""
+    return list(zip(item.urdf_ref_paths, item.urdf_mask_paths + [""] * len(item.urdf_ref_paths)))
 
 
 class Neural:
@@ -416,8 +408,11 @@ def _mask(path: str, hw: tuple[int, int] | None = None) -> np.ndarray | None:
     return resize_mask(m, hw) if hw is not None else m
 
 
-def score_sample(s: Sample, neural: Neural, cfg: ToolkitConfig = ToolkitConfig()) -> tuple[dict, dict]:
-    """(the toolkit's per-sample row, Inception features for the pooled FID)."""
+def score_sample(s: "ManifestItem", neural: Neural, cfg: ToolkitConfig = ToolkitConfig(),
+                 refs: list[tuple[str, str]] | None = None) -> tuple[dict, dict]:
+    """(the toolkit's per-sample row, Inception features for the pooled FID) of one manifest item
+    (paths resolved); ``refs``: its reference views (default: its own, ``own_refs``)."""
+    refs = own_refs(s) if refs is None else refs
     row: dict = {m: float("nan") for m in GENERIC_METRICS + VLM_METRICS + EMBODIED_METRICS}
     feats: dict = {}
     if not s.pred_path or not Path(s.pred_path).exists():
@@ -445,7 +440,7 @@ def score_sample(s: Sample, neural: Neural, cfg: ToolkitConfig = ToolkitConfig()
     if roi is None:
         roi = np.ones(pred.shape[:2], np.uint8)
     if src is not None:
-        row.update(_embodied(s, src, pred, gt, roi, neural, cfg))
+        row.update(_embodied(s, refs, src, pred, gt, roi, neural, cfg))
     if gt is None:
         return row, feats
 
@@ -471,7 +466,7 @@ def score_sample(s: Sample, neural: Neural, cfg: ToolkitConfig = ToolkitConfig()
     return row, feats
 
 
-def _embodied(s: Sample, src, pred, gt, roi, neural: Neural, cfg: ToolkitConfig) -> dict:
+def _embodied(s: "ManifestItem", refs: list[tuple[str, str]], src, pred, gt, roi, neural: Neural, cfg: ToolkitConfig) -> dict:
     roi = (roi > 0).astype(np.uint8)
     if roi.sum() <= 10:
         return {}
@@ -495,15 +490,15 @@ def _embodied(s: Sample, src, pred, gt, roi, neural: Neural, cfg: ToolkitConfig)
         gt_mask = np.ones(gt.shape[:2], np.uint8)
 
     clip_score, clip_cos, best, n_refs = float("nan"), float("nan"), "", 0.0
-    pred_id = neural.clip(masked_crop(pred, test, cfg.roi_pad, 0.5)) if s.refs else None
+    pred_id = neural.clip(masked_crop(pred, test, cfg.roi_pad, 0.5)) if refs else None
     if pred_id is not None:
         best_score = -1.0
-        for path, mask_path in s.refs:
+        for path, mask_path in refs:
             ref = neural.clip_reference(path, mask_path, cfg)
             c = _cos(pred_id, ref)
             if 0.5 * (1.0 + c) > best_score:
                 best_score, clip_cos, best = 0.5 * (1.0 + c), c, path
-        clip_score, n_refs = float(np.clip(best_score, 0.0, 1.0)), float(len(s.refs))
+        clip_score, n_refs = float(np.clip(best_score, 0.0, 1.0)), float(len(refs))
     out.update({"Fidelity-ID-clip": clip_score, "Fidelity-ID-clip-cos": clip_cos, "Fidelity-ID-best-ref": best,
                 "Fidelity-ID-bank-size": n_refs if neural.enc.clip is not None else float("nan")})
 

@@ -16,6 +16,8 @@ import numpy as np
 import trimesh
 import yourdfpy
 
+from handedit.embodiments.roster import CAPS
+
 Rgba = tuple[float, float, float, float]
 
 NEUTRAL_GREY: Rgba = (0.6, 0.6, 0.6, 1.0)
@@ -126,11 +128,10 @@ def _final_material(link: str, src: Material | None, overrides: list[tuple[re.Pa
     return src or default
 
 
-CAPS = "@caps"
-"""A ``materials`` key ``LINK_REGEX@caps`` colours the joint caps of those links: faces square
-to one of the link's joint axes (its own, and its child joints') within ``CAP_RADIUS_M`` of
-that axis, i.e. the round end faces of the joint housings (the Jaka's blue caps are faces of
-single-colour STL link meshes)."""
+# A ``materials`` key ``LINK_REGEX@caps`` (``CAPS``) colours the joint caps of those links:
+# faces square to one of the link's joint axes (its own, and its child joints') within
+# ``CAP_RADIUS_M`` of that axis, i.e. the round end faces of the joint housings (the Jaka's
+# blue caps are faces of single-colour STL link meshes).
 CAP_RADIUS_M = 0.05
 CAP_COS = 0.95
 
