@@ -6,7 +6,7 @@ with the predicted masks, and with the true masks to isolate restoration), the
 composite-boundary error (a robot silhouette composited over the restored vs the true
 background, mean |RGB diff| in a 3 px band), and harmonization's Lab gap between the
 robot and its surroundings before/after. Then segments + restores frames of the real
-video and writes the contact sheet ``docs/real_video_contact_sheet.png``
+video and writes the contact sheet ``runs/stage_quality/real_video_contact_sheet.png``
 (source | hand-arm (blue) / hand (red) overlay | restored background).
 
     .venv/bin/python bench/stage_quality.py [--clips 2] [--frames 16] [--size 192x144] [--no-real]
@@ -139,7 +139,8 @@ def main() -> None:
           f"({100 * (1 - mean['lab_after'] / max(mean['lab_before'], 1e-9)):.0f}% closer)  [{time.perf_counter() - t0:.1f} s]")
     if not args.no_real:
         if REAL_VIDEO.is_file():
-            out = ROOT / "docs" / "real_video_contact_sheet.png"
+            out = ROOT / "runs" / "stage_quality" / "real_video_contact_sheet.png"
+            out.parent.mkdir(parents=True, exist_ok=True)
             contact_sheet(REAL_VIDEO, out)
             print(f"contact sheet: {out}")
         else:

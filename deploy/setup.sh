@@ -37,4 +37,7 @@ fi
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q -e ".${extras}"
+# estimate_hands' models (Apache-2.0, ~12 MB out of a 36 MB wheel): once, into the user cache
+.venv/bin/handedit models fetch \
+  || echo "warning: could not fetch the hand models; videos without keypoints stop at estimate_hands until \`handedit models fetch\` succeeds"
 echo "handedit is set up in $(pwd)/.venv"

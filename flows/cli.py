@@ -62,14 +62,19 @@ def _build_config(args: argparse.Namespace):
         clips += make_clip_specs(args.clips, seed=args.seed, n_frames=n, width=args.width, height=args.height)
     for video in args.video or []:
         clips.append(VideoSpec(path=Path(video), keypoints_path=Path(args.keypoints) if args.keypoints else None,
-                               max_frames=args.max_frames, resize=resize))
+                               max_frames=args.max_frames, resize=resize, hfov_deg=args.fov,
+                               intrinsics=_intrinsics(args.intrinsics) if args.intrinsics else None))
     if args.source:
         from handedit.sources import TREES
 
         if not args.root:
             raise SystemExit(f"handedit curate: --source {args.source} needs --root DIR (the dataset's top folder)")
-        sources.append(TREES[args.source](root=Path(args.root), tasks=args.task or [], max_clips=args.max_clips,
-                                          frames=_window(args.frames) if window else None, resize=resize))
+        tree = TREES[args.source]
+        extra = {"mano_dir": Path(args.mano_dir)} if args.mano_dir and "mano_dir" in tree.model_fields else {}
+        if args.mano_dir and not extra:
+            raise SystemExit(f"handedit curate: --source {args.source} does not use MANO; drop --mano-dir")
+        sources.append(tree(root=Path(args.root), tasks=args.task or [], max_clips=args.max_clips,
+                            frames=_window(args.frames) if window else None, resize=resize, **extra))
     if not clips and not sources:
         raise SystemExit("handedit curate: give --demo, --video FILE, --source NAME --root DIR or --config FILE")
     cluster = ClusterConfig(address=args.address, n_workers=args.workers)
@@ -79,6 +84,9 @@ def _build_config(args: argparse.Namespace):
         spec = yaml.safe_load(Path(args.cluster).read_text()) or {}
         cluster = ClusterConfig.model_validate(spec.get("cluster", spec))
     extra = {"qc": {"keep": args.keep}} if args.keep else {}
+    if args.estimate_hands or args.hand_pose_model:
+        extra["estimate_hands"] = {**({"mode": args.estimate_hands} if args.estimate_hands else {}),
+                                   **({"model_path": args.hand_pose_model} if args.hand_pose_model else {})}
     return CurateConfig(out=args.out, clips=clips, sources=sources, embodiments=args.embodiment or ["allegro"],
                         frames_per_chunk=args.frames_per_chunk, shard_size=args.shard_size, take_over=args.take_over,
                         cluster=cluster, **extra)
@@ -100,6 +108,15 @@ def _window(text: str) -> tuple[int, int]:
         return parse_frames(text)
     except ValueError as exc:
         raise SystemExit(f"handedit curate: {exc}") from None
+
+
+def _intrinsics(text: str) -> tuple[float, float, float, float]:
+    try:
+        fx, fy, cx, cy = (float(v) for v in text.split(","))
+    except ValueError:
+        raise SystemExit(f"handedit curate: --intrinsics {text!r}: use FX,FY,CX,CY in pixels of the file, "
+                         f"e.g. 910,910,640,360") from None
+    return fx, fy, cx, cy
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -241,11 +258,19 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("--video", action="append", help="a video file (repeatable)")
     c.add_argument("--keypoints", help="keypoints .npy/.npz for --video (MANO order, camera frame, metres)")
     c.add_argument("--max-frames", type=int, default=None)
+    c.add_argument("--fov", type=float, help="--video without calibration: its horizontal field of view in degrees "
+                   "(default: a 70 degree guess)")
+    c.add_argument("--intrinsics", metavar="FX,FY,CX,CY", help="--video: its calibrated intrinsics (pixels of the file)")
+    c.add_argument("--estimate-hands", choices=["auto", "always", "never"], help="estimate the hands' 3-D keypoints "
+                   "from the pixels: auto (default) for sources without keypoints, always, or never")
+    c.add_argument("--hand-pose-model", help="ONNX hand-pose plug-in for estimate_hands (handedit.models.hand_pose)")
     from handedit.sources import TREES
 
     c.add_argument("--source", choices=sorted(TREES), help="a dataset tree (with --root)")
     c.add_argument("--root", help="the dataset's top folder, e.g. ../shared/data/egodex")
-    c.add_argument("--task", action="append", help="only this task folder (repeatable)")
+    c.add_argument("--task", action="append", help="only this task folder (ARCTIC: subject) (repeatable)")
+    c.add_argument("--mano-dir", help="MANO-based sources: the folder holding your MANO_RIGHT.pkl and MANO_LEFT.pkl "
+                   "(default $HANDEDIT_MANO_DIR; register at https://mano.is.tue.mpg.de)")
     c.add_argument("--max-clips", type=int, default=None, help="at most this many clips of the tree")
     c.add_argument("--resize", help="working resolution WIDTHxHEIGHT (intrinsics scaled), e.g. 960x540")
     c.add_argument("--keep", choices=["all_hands", "per_hand"], help="bimanual frames: keep only if every hand was "

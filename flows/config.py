@@ -22,6 +22,7 @@ from handedit.retarget import RetargetConfig
 from handedit.sources import SourceSpec, TreeSpec
 from handedit.vision.registration import RegistrationConfig
 from handedit.vision.composite import CompositeConfig
+from handedit.vision.estimate_hands import EstimateHandsConfig
 from handedit.vision.harmonize import HarmonizeConfig
 from handedit.vision.restore_background import RestoreConfig
 from handedit.vision.segment import SegmentConfig
@@ -179,6 +180,7 @@ class CurateConfig(BaseModel):
     take_over: bool = Field(False, description="claim shards even when another driver's claim looks live")
     check_skipped_shards: bool = Field(True, description="before skipping a complete shard, list its clips' chunk "
                                        "objects (one listing per clip) and re-run it if any is missing")
+    estimate_hands: EstimateHandsConfig = EstimateHandsConfig()
     registration: RegistrationConfig = RegistrationConfig()
     segment: SegmentConfig = SegmentConfig()
     restore_background: RestoreConfig = RestoreConfig()

@@ -94,6 +94,8 @@ def model_digests(config: CurateConfig) -> dict[str, str]:
         path = getattr(config.stage_config(stage), "model_path", None)
         if path:
             out[stage] = file_digest(Path(path))
+    if config.estimate_hands.mode != "never":  # the hand models it runs, wherever they are
+        out["estimate_hands:hand_models"] = config.estimate_hands.model_digest()
     return out
 
 

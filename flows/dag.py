@@ -4,7 +4,7 @@ The nodes of one clip's per-clip stages (``clip_nodes``) and of one clip x embod
 (``embodiment_nodes``) are what the two Prefect tasks of ``handedit.tasks.clip`` walk;
 the driver never builds nodes.
 
-Stages: ingest -> registration -> segment -> restore_background (per scope) and, per
+Stages: ingest -> [estimate_hands] -> registration -> segment -> restore_background (per scope) and, per
 embodiment, retarget -> render -> composite -> harmonize -> qc. Every per-hand stage
 handles all of a clip's hands in one node (its arrays have a hand axis). A node is one (unit, chunk); its
 dependencies name the exact arrays it reads, so its provenance key fingerprints exactly
@@ -60,6 +60,7 @@ class ClipPlan:
     has_keypoints: bool = True
     world: dict | None = field(default=None, compare=False)
     keypoints_exact: bool = False
+    estimate_hands: bool = False  # the keypoints come from the estimate_hands stage, not the source
 
 
 def node_inputs(node: Node, records: dict[NodeId, dict]) -> dict[str, str]:
@@ -75,7 +76,8 @@ def node_inputs(node: Node, records: dict[NodeId, dict]) -> dict[str, str]:
 
 def _ctx(clip: ClipPlan) -> tuple[dict, dict]:
     base = {"intrinsics": clip.intrinsics, "has_object": clip.has_object, "hands": list(clip.hands),
-            "has_arm": clip.has_arm, "has_keypoints": clip.has_keypoints, "keypoints_exact": clip.keypoints_exact}
+            "has_arm": clip.has_arm, "has_keypoints": clip.has_keypoints, "keypoints_exact": clip.keypoints_exact,
+            "estimated": clip.estimate_hands}
     return base, {"intrinsics": dumps(clip.intrinsics)}
 
 
@@ -88,10 +90,21 @@ def clip_nodes(clip: ClipPlan, scopes, frames_per_chunk: int, restore_window: in
     arm = ("arm_keypoints", "arm_valid") if clip.has_arm else ()
     reg_out = ("keypoints", "keypoints_valid", "hand_status", "status")
     nodes: list[Node] = []
+    estimate = Unit("estimate_hands", c)
+    if clip.estimate_hands:  # one node for the clip: tracking and sides run over the whole sequence
+        deps = [Dep(ingest, k, ("frames", "status")) for k in range(len(ranges))]
+        ctx = {**base_ctx, "fps": clip.info.get("fps", 30.0),
+               "intrinsics_origin": (clip.info.get("meta") or {}).get("intrinsics_origin", "source")}
+        nodes.append(Node(estimate, 0, 0, clip.n_frames, deps, ctx, camera))
     for k, (s, e) in enumerate(ranges):
-        ingest_ctx = {"source": clip.source_json, "has_object": clip.has_object, "has_gt": clip.has_gt, "has_arm": clip.has_arm}
+        ingest_ctx = {"source": clip.source_json, "has_object": clip.has_object, "has_gt": clip.has_gt, "has_arm": clip.has_arm,
+                      "hands": list(clip.hands)}
         nodes.append(Node(ingest, k, s, e, [], ingest_ctx, {"source": clip.fingerprint}))
-        reg_deps = [Dep(ingest, k, ("frames", "keypoints", "keypoints_valid", "status", *arm))]
+        if clip.estimate_hands:
+            reg_deps = [Dep(ingest, k, ("frames", "status")),
+                        Dep(estimate, 0, ("keypoints", "keypoints_valid", "hand_status", "status"))]
+        else:
+            reg_deps = [Dep(ingest, k, ("frames", "keypoints", "keypoints_valid", "status", *arm))]
         nodes.append(Node(registration, k, s, e, reg_deps, base_ctx, camera))
         seg_deps = [Dep(ingest, k, ("frames", "status")), Dep(registration, k, (*reg_out, *arm[:1]))]
         nodes.append(Node(segment, k, s, e, seg_deps, base_ctx, camera))

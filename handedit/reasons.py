@@ -27,6 +27,9 @@ class Reason(IntEnum):
     CORRUPT_FRAME = 102  # frame could not be decoded
     BLANK_FRAME = 103  # frame is constant / all black
     SOURCE_UNREADABLE = 104  # the clip's source could not be opened at all (frame -1 in the ledger)
+    NO_HAND_DETECTED = 105  # estimate_hands: no hand found in the frame (every side)
+    LOW_HAND_CONFIDENCE = 106  # estimate_hands: the landmark model's hand presence is below the threshold
+    IMPLAUSIBLE_HAND = 107  # estimate_hands: bone lengths or reprojection of the 3-D hand are not a hand's
     # 2xx: segmentation
     EMPTY_MASK = 201
     LOW_CONFIDENCE = 202  # segmenter confidence below threshold (0.75 for a model)

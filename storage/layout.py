@@ -4,6 +4,7 @@ Nothing else in the project builds a store path by hand. The tree is::
 
     <store>.zarr/                         attrs: schema, frames_per_chunk, created
       clips/<clip>/source/                ingest: frames, camera, keypoints (per hand), arm joints, object, gt_*
+      clips/<clip>/estimate_hands/        keypoints estimated from the pixels (sources without any), raw + smoothed
       clips/<clip>/registration/        keypoints registered to the pixels, offset_px, scale
       clips/<clip>/segment/               hand_mask, handarm_mask (per hand), confidence
       clips/<clip>/restore_background/<scope>/   background (scope = hand | hand_arm)
@@ -14,7 +15,7 @@ Every stage group ("unit") holds a ``status`` array (one int16 per frame, codes 
 ``handedit.reasons``) and, in its attributes, a provenance record per chunk.
 
 Hands: per-hand arrays have a ``hand`` axis after ``frame`` (size S, in the order of the
-source's ``hands`` attribute, e.g. left, right). Stages that work per hand (registration,
+source's ``hands`` attribute, e.g. left, right). Stages that work per hand (estimate_hands, registration,
 segment, retarget, render, composite, qc) also write ``hand_status`` (frame, hand): OK,
 ABSENT (not in view), UPSTREAM or the side's own rejection; their frame-level ``status``
 is OK when at least one side is OK (see ``handedit.reasons.per_frame``). Why an axis and
@@ -39,6 +40,7 @@ SCOPES = ("hand", "hand_arm")
 # Stage -> level: which address fields identify one unit of that stage.
 STAGE_LEVEL: dict[str, str] = {
     "ingest": "clip",
+    "estimate_hands": "clip",  # only for clips whose hands are estimated from the pixels
     "registration": "clip",
     "segment": "clip",
     "restore_background": "scope",
@@ -147,6 +149,17 @@ ARRAYS: dict[str, tuple[ArraySpec, ...]] = {
         ArraySpec("gt_hand_mask", _MASK, "bool", _MASK_DIMS, image=True, when="gt", fill=False),
         ArraySpec("gt_handarm_mask", _MASK, "bool", _MASK_DIMS, image=True, when="gt", fill=False),
         ArraySpec("gt_background", ("H", "W", 3), "uint8", ("y", "x", "rgb"), image=True, when="gt"),
+        _STATUS,
+    ),
+    "estimate_hands": (
+        ArraySpec("keypoints", ("S", 21, 3), "float32", ("hand", "joint", "xyz")),
+        ArraySpec("keypoints_raw", ("S", 21, 3), "float32", ("hand", "joint", "xyz")),
+        ArraySpec("keypoints_valid", ("S", 21), "bool", ("hand", "joint"), fill=False),
+        ArraySpec("confidence", ("S", 21), "float32", ("hand", "joint")),
+        ArraySpec("box", ("S", 4), "float32", ("hand", "xyxy")),
+        ArraySpec("p_right", ("S",), "float32", ("hand",)),
+        ArraySpec("reprojection_px", ("S",), "float32", ("hand",)),
+        _HAND_STATUS,
         _STATUS,
     ),
     "registration": (

@@ -5,6 +5,7 @@ the math lives in ``handedit``.
 """
 
 from handedit.tasks import composite as _composite
+from handedit.tasks import estimate_hands as _estimate_hands
 from handedit.tasks import harmonize as _harmonize
 from handedit.tasks import ingest as _ingest
 from handedit.tasks import qc as _qc
@@ -16,6 +17,7 @@ from handedit.tasks import segment as _segment
 
 _MODULES = {
     "ingest": _ingest,
+    "estimate_hands": _estimate_hands,
     "registration": _registration,
     "segment": _segment,
     "restore_background": _restore_background,

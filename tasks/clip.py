@@ -1,6 +1,7 @@
 """The card's task granularity: one Prefect task per clip, one per clip x embodiment.
 
-``curate_clip`` runs a clip's per-clip stages (ingest, registration, segment,
+``curate_clip`` runs a clip's per-clip stages (ingest, estimate_hands where the hands
+come from the pixels, registration, segment,
 restore_background per scope) and ``curate_embodiment`` one embodiment's stages (retarget,
 render, composite, harmonize, qc) of one clip. Each walks its chunks itself, in dependency
 order and streaming (chunk k is ingested, registered and segmented before chunk k-1 is
@@ -39,7 +40,7 @@ from handedit.storage.provenance import ChunkRecord, drop_records, is_current, p
 from handedit.storage.store import CorruptChunk, create_previews, jsonable
 from handedit.tasks.common import RETRIES, RETRY_DELAYS, ChunkJob, execute, failure_record, is_transient, open_root
 
-CLIP_STAGES = ("ingest", "registration", "segment", "restore_background")
+CLIP_STAGES = ("ingest", "estimate_hands", "registration", "segment", "restore_background")
 EMBODIMENT_STAGES = ("retarget", "render", "composite", "harmonize", "qc")
 
 
@@ -243,12 +244,20 @@ def _run(root, job: ChunkJob, body) -> dict:
 # ----------------------------------------------------------------------------- units
 
 
-def clip_plan(spec):
-    """A clip's plan from its source (opens it: metadata only); raises SourceError."""
+def clip_plan(spec, estimate: str = "auto"):
+    """A clip's plan from its source (opens it: metadata only); raises SourceError.
+    ``estimate`` (EstimateHandsConfig.mode): whether its hands are estimated from the
+    pixels; such a clip tracks both sides, whatever the source says."""
     from handedit.flows.dag import ClipPlan
+    from handedit.keypoints import SIDES
     from handedit.sources import open_source
 
     info = open_source(spec).info()
+    estimated = estimate == "always" or (estimate == "auto" and not info.has_keypoints)
+    if estimated:
+        from dataclasses import replace
+
+        info = replace(info, hands=SIDES, has_keypoints=True, keypoints_exact=False, has_arm=False)
     return ClipPlan(
         clip=info.clip_id, n_frames=info.n_frames, height=info.height, width=info.width,
         intrinsics=info.intrinsics.to_dict(), source_json=json.dumps(spec.model_dump(mode="json"), sort_keys=True,
@@ -256,6 +265,7 @@ def clip_plan(spec):
         fingerprint=info.fingerprint, has_object=info.has_object, has_gt=bool(info.ground_truth),
         info=jsonable({**vars(info), "intrinsics": info.intrinsics.to_dict()}), hands=tuple(info.hands),
         has_arm=info.has_arm, has_keypoints=info.has_keypoints, world=info.world, keypoints_exact=info.keypoints_exact,
+        estimate_hands=estimated,
     )
 
 
@@ -282,6 +292,8 @@ def create_clip_units(root, config, plan, scopes) -> None:
     hands = {"hands": list(plan.hands)}
     create_unit(root, Unit("ingest", plan.clip), plan.n_frames, sizes, f, plan.has_object, plan.has_gt,
                 attrs={"info": plan.info, "plan": _plan_json(plan), **hands}, has_arm=plan.has_arm)
+    if plan.estimate_hands:
+        create_unit(root, Unit("estimate_hands", plan.clip), plan.n_frames, sizes, f, attrs=hands)
     create_unit(root, Unit("registration", plan.clip), plan.n_frames, sizes, f, attrs=hands, has_arm=plan.has_arm)
     create_unit(root, Unit("segment", plan.clip), plan.n_frames, sizes, f, attrs=hands)
     for scope in sorted(scopes):
@@ -306,9 +318,12 @@ def _asset_inputs(config, nodes, emb: dict | None = None) -> None:
     from handedit.digests import file_digest
 
     for node in nodes:
-        path = getattr(config.stage_config(node.unit.stage), "model_path", None)
+        cfg = config.stage_config(node.unit.stage)
+        path = getattr(cfg, "model_path", None)
         if path:
             node.fixed_inputs["model"] = file_digest(path)
+        if node.unit.stage == "estimate_hands":
+            node.fixed_inputs["hand_models"] = cfg.model_digest()
         if emb is not None and node.unit.stage in ("retarget", "render"):
             node.fixed_inputs["urdf"] = emb.get("urdf_digest", "")
 
@@ -327,13 +342,15 @@ def run_clip(job: ClipJob) -> dict:
     spec = parse_spec(json.loads(job.spec_json))
     result = WalkResult(spec.id)
     try:
-        plan = clip_plan(spec)
+        plan = clip_plan(spec, config.estimate_hands.mode)
     except SourceError as exc:
         result.source_error = str(exc)
         return vars(result)
     root = open_root(job.store)
     create_clip_units(root, config, plan, job.scopes)
     for stage in CLIP_STAGES:
+        if stage == "estimate_hands" and not plan.estimate_hands:
+            continue
         for scope in (job.scopes if stage == "restore_background" else (None,)):
             unit = Unit(stage, plan.clip, scope=scope)
             v, p = stage_version_params(config, stage)

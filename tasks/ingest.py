@@ -8,6 +8,7 @@ import zarr
 from prefect import task
 
 from handedit.sources import frame_status, open_source_json
+from handedit.sources.base import on_sides
 from handedit.tasks._options import stage_options
 from handedit.tasks.common import ChunkJob, StageOutput, execute
 
@@ -17,12 +18,8 @@ def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     video = getattr(source, "video", None)  # video sources: what this chunk cost the decoder
     before = replace(video.stats) if video is not None else None
     chunk = source.read(job.start, job.stop)
-    arrays = {
-        "frames": chunk.frames,
-        "world_from_camera": chunk.world_from_camera,
-        "keypoints": chunk.keypoints,
-        "keypoints_valid": chunk.keypoints_valid,
-    }
+    kp, valid = on_sides(chunk.keypoints, chunk.keypoints_valid, source.info().hands, job.context.get("hands"))
+    arrays = {"frames": chunk.frames, "world_from_camera": chunk.world_from_camera, "keypoints": kp, "keypoints_valid": valid}
     if job.context.get("has_arm"):
         arrays["arm_keypoints"], arrays["arm_valid"] = chunk.arms()
     if job.context.get("has_object"):

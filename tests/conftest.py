@@ -16,6 +16,11 @@ os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
 os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "error")
 # A private cache: derived URDFs are rebuilt, and robots a developer fetched into the user
 # cache (which the roster searches by default) cannot make "missing asset" tests pass or fail.
+# The hand models `handedit models fetch` put in the user cache (deploy/setup.sh) stay found.
+if "HANDEDIT_HAND_MODEL_DIR" not in os.environ:
+    from handedit.models.fetch import default_model_dir
+
+    os.environ["HANDEDIT_HAND_MODEL_DIR"] = str(default_model_dir())
 os.environ["HANDEDIT_CACHE_DIR"] = tempfile.mkdtemp(prefix="handedit-cache-")
 
 REPO = Path(__file__).resolve().parents[1]

@@ -189,8 +189,9 @@ def test_missing_assets_reject_only_that_embodiment(tmp_path, monkeypatch, prefe
 
 
 def test_real_video_without_keypoints(tmp_path, real_video, prefect_api, dask_cluster):
+    """With hand estimation off (tests/test_estimate_hands.py runs it on): removed, not retargeted."""
     clip = VideoSpec(path=real_video, clip_id="real", max_frames=F)
-    config = make_config(tmp_path / "handedit.zarr", dask_cluster, clips=[clip])
+    config = make_config(tmp_path / "handedit.zarr", dask_cluster, clips=[clip], estimate_hands={"mode": "never"})
     run_curate(config)
     root = open_store(config.out)
     frames = root[Unit("ingest", "real").path]["frames"]

@@ -32,8 +32,26 @@ def test_nodes_and_dependencies():
     assert {d.unit.stage for d in qc.deps if "hand_status" in d.arrays} == {"registration", "segment", "retarget", "render",
                                                                              "composite"}
     # what the two tasks of a clip walk: clip stages, and one embodiment's
-    assert {n.unit.stage for n in clip_nodes(CLIP, ["hand"], 8, 3)} == set(CLIP_STAGES)
+    assert {n.unit.stage for n in clip_nodes(CLIP, ["hand"], 8, 3)} == set(CLIP_STAGES) - {"estimate_hands"}
     assert {n.unit.stage for n in embodiment_nodes(CLIP, "allegro", "hand", 8)} == set(EMBODIMENT_STAGES)
+
+
+def test_estimated_hands_are_one_node_per_clip_that_registration_reads():
+    from dataclasses import replace
+
+    clip = replace(CLIP, estimate_hands=True, has_object=False, hands=("left", "right"))
+    nodes = clip_nodes(clip, ["hand"], 8, 3)
+    by_id = {n.id: n for n in nodes}
+    est = [n for n in nodes if n.unit.stage == "estimate_hands"]
+    assert len(est) == 1 and (est[0].start, est[0].stop) == (0, 20)
+    assert {(d.unit.stage, d.chunk) for d in est[0].deps} == {("ingest", k) for k in (0, 1, 2)}
+    reg = by_id[(Unit("registration", "c"), 2)]
+    assert [(d.unit.stage, d.chunk) for d in reg.deps] == [("ingest", 2), ("estimate_hands", 0)]
+    assert "keypoints" not in reg.deps[0].arrays and "keypoints" in reg.deps[1].arrays  # the estimate's, not the source's
+    assert reg.context["estimated"] is True
+    order = [(n.unit.stage, n.chunk) for n in _order(nodes)]
+    assert order.index(("estimate_hands", 0)) > order.index(("ingest", 2))
+    assert order.index(("estimate_hands", 0)) < order.index(("registration", 0))
 
 
 def test_walk_streams_chunks_in_dependency_order():

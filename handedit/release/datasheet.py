@@ -14,7 +14,7 @@ import pandas as pd
 
 # the paper's four families (Table "pseudogt_failure_breakdown"), plus the input stages;
 # keyed in pipeline order
-FAMILY = {"ingest": "Input / source", "registration": "Input / source", "segment": "Segmentation",
+FAMILY = {"ingest": "Input / source", "estimate_hands": "Input / source", "registration": "Input / source", "segment": "Segmentation",
           "restore_background": "Background restoration / inpainting", "retarget": "Hand retargeting",
           "render": "Rendering / compositing", "composite": "Rendering / compositing",
           "harmonize": "Rendering / compositing", "qc": "Rendering / compositing"}

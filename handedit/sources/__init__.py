@@ -13,18 +13,30 @@ from typing import Annotated, Iterator, Union
 
 from pydantic import Field, TypeAdapter
 
+from handedit.sources.arctic import ArcticSpec, ArcticTree
 from handedit.sources.base import ClipChunk, ClipInfo, Source, SourceError, frame_status
 from handedit.sources.egodex import EgoDexSpec, EgoDexTree
 from handedit.sources.synthetic import SyntheticSpec
 from handedit.sources.video import VideoSpec
 
-SourceSpec = Annotated[Union[SyntheticSpec, VideoSpec, EgoDexSpec], Field(discriminator="kind")]
-TreeSpec = Annotated[Union[EgoDexTree], Field(discriminator="kind")]
+SourceSpec = Annotated[Union[SyntheticSpec, VideoSpec, EgoDexSpec, ArcticSpec], Field(discriminator="kind")]
+TreeSpec = Annotated[Union[EgoDexTree, ArcticTree], Field(discriminator="kind")]
 _SPEC = TypeAdapter(SourceSpec)
-TREES = {"egodex": EgoDexTree}  # --source NAME -> its tree spec
+TREES = {"egodex": EgoDexTree, "arctic": ArcticTree}  # --source NAME -> its tree spec
+# what each source needs beyond its files, and what it provides (`handedit sources list`)
+SOURCES: dict[str, dict[str, str]] = {
+    "synthetic": {"needs": "nothing (generated)", "provides": "one right hand, exact keypoints, "
+                  "object mesh + pose + mask, ground-truth masks and background"},
+    "video": {"needs": "a video; optional keypoints file; else the hand models (`handedit models fetch`)",
+              "provides": "frames; hands from the keypoints file or estimated (estimate_hands)"},
+    "egodex": {"needs": "an EgoDex tree (<task>/<k>.hdf5 + .mp4)", "provides": "both hands, arms (elbow, shoulder), "
+               "camera poses (ARKit world, Y up); no objects"},
+    "arctic": {"needs": "an ARCTIC tree (raw_seqs/, meta/, images/) and your MANO model (--mano-dir)",
+               "provides": "both hands (MANO), egocentric camera (undistorted), articulated object pose + mesh + mask"},
+}
 
 
-def parse_spec(data: dict) -> SyntheticSpec | VideoSpec | EgoDexSpec:
+def parse_spec(data: dict) -> SyntheticSpec | VideoSpec | EgoDexSpec | ArcticSpec:
     return _SPEC.validate_python(data)
 
 
@@ -48,7 +60,7 @@ def iter_groups(trees, clips=()) -> Iterator[tuple[str, list]]:
             yield f"{tree.kind}-{name}", specs
 
 
-__all__ = [
-    "ClipChunk", "ClipInfo", "EgoDexSpec", "EgoDexTree", "Source", "SourceError", "SourceSpec", "SyntheticSpec",
+__all__ = ["SOURCES", 
+    "ArcticSpec", "ArcticTree", "ClipChunk", "ClipInfo", "EgoDexSpec", "EgoDexTree", "Source", "SourceError", "SourceSpec", "SyntheticSpec",
     "TREES", "TreeSpec", "VideoSpec", "frame_status", "iter_groups", "open_source", "open_source_json", "parse_spec",
 ]

@@ -93,6 +93,20 @@ def no_keypoints(n: int, sides: int = 1) -> tuple[np.ndarray, np.ndarray]:
     return np.zeros((n, sides, N_JOINTS, 3), np.float32), np.zeros((n, sides, N_JOINTS), bool)
 
 
+def on_sides(keypoints: np.ndarray, valid: np.ndarray, have: tuple[str, ...], want) -> tuple[np.ndarray, np.ndarray]:
+    """A chunk's (n,S,...) keypoint arrays on another hand axis ``want`` (e.g. both sides for
+    a clip whose hands are estimated): the sides it lacks are zero / invalid."""
+    if want is None or tuple(want) == tuple(have):
+        return keypoints, valid
+    n = keypoints.shape[0]
+    kp = np.zeros((n, len(want), *keypoints.shape[2:]), keypoints.dtype)
+    ok = np.zeros((n, len(want), *valid.shape[2:]), bool)
+    for k, side in enumerate(want):
+        if side in have:
+            kp[:, k], ok[:, k] = keypoints[:, have.index(side)], valid[:, have.index(side)]
+    return kp, ok
+
+
 def frame_status(chunk: ClipChunk) -> tuple[np.ndarray, dict[int, str]]:
     """Per-frame ingest status: undecodable frames and blank (constant) frames are rejected."""
     from handedit.reasons import Reason

@@ -39,6 +39,7 @@ class VideoSpec(pydantic.BaseModel):
     hand: Literal["left", "right"] = "right"  # the side of a one-hand keypoints file (or of the video)
     clip_id: str | None = None  # default: the video's file stem
     intrinsics: tuple[float, float, float, float] | None = None  # fx, fy, cx, cy (at the file's resolution)
+    hfov_deg: float | None = pydantic.Field(None, gt=10, lt=170)  # uncalibrated: the horizontal field of view
     max_frames: int | None = pydantic.Field(default=None, ge=1)
     resize: tuple[int, int] | None = None  # working resolution (W, H); intrinsics are scaled to it
     # "auto": seek, then place frames by timestamp (falls back to sequential when the
@@ -140,6 +141,9 @@ class VideoSource:
             intr, origin = Intrinsics(fx, fy, cx, cy, p.width, p.height), "spec"
         elif self._kp is not None and self._kp.K is not None:
             intr, origin = Intrinsics.from_K(self._kp.K, p.width, p.height), "keypoints_file:K"
+        elif self.spec.hfov_deg is not None:
+            intr = Intrinsics.default_for(p.width, p.height, self.spec.hfov_deg)
+            origin = f"spec: hfov {self.spec.hfov_deg:g} deg (uncalibrated, centred principal point)"
         else:
             intr, origin = Intrinsics.default_for(p.width, p.height), "default: Intrinsics.default_for(W,H) (70 deg hfov guess, uncalibrated)"
         return intr.scaled(*self.video.size), origin

@@ -1,0 +1,1 @@
+"""Parametric hand models the dataset adapters convert from (MANO)."""
