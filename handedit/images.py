@@ -22,3 +22,14 @@ def decode_rgb(data: bytes) -> np.ndarray | None:
     """(H,W,3) uint8 RGB, or None when ``data`` is not a decodable image."""
     a = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     return None if a is None else cv2.cvtColor(a, cv2.COLOR_BGR2RGB)
+
+
+def read_rgb(path, size: tuple[int, int] | None = None, expect: tuple[int, int] | None = None) -> np.ndarray | None:
+    """An image file as RGB uint8, resized to ``size`` (W, H); None when it is missing, does not
+    decode, or is not ``expect`` (W, H) in size (dataset frames stored as image files)."""
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None or (expect is not None and (img.shape[1], img.shape[0]) != tuple(expect)):
+        return None
+    if size is not None and (img.shape[1], img.shape[0]) != tuple(size):
+        img = cv2.resize(img, tuple(size), interpolation=cv2.INTER_AREA)
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)

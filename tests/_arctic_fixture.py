@@ -27,7 +27,7 @@ MARK_CORE = (slice(12, 18), slice(186, 198))  # inside it wherever undistortion 
 BONES = [(p, j) for j, p in enumerate((-1, 0, 1, 2, 3, 0, 5, 6, 7, 0, 9, 10, 11, 0, 13, 14, 15, 0, 17, 18, 19)) if p >= 0]
 
 
-def _box_mesh():
+def box_mesh():
     """A 10 x 8 x 12 cm box (mm), vertices of its upper half flagged as the top part."""
     import trimesh
 
@@ -51,7 +51,7 @@ def hand_params(side: str) -> dict:
     curl = np.linspace(0.0, 0.5, T)[:, None]
     pose = np.zeros((T, 45))
     pose[:, 2::3] = curl * (0.3 if side == "right" else 0.2)
-    x = 0.11 if side == "right" else -0.11
+    x = 0.09 if side == "right" else -0.09
     trans = np.stack([np.full(T, x), np.full(T, 0.06), np.linspace(0.30, 0.32, T)], 1)
     return {"rot": rot, "pose": pose, "trans": trans, "shape": np.array([0.8 if side == "right" else -0.6, *[0.0] * 9]),
             "fitting_err": np.zeros(T)}
@@ -62,7 +62,7 @@ def object_params() -> np.ndarray:
     p = np.zeros((T, 7))
     p[:, 0] = np.linspace(0.0, 0.6, T)
     p[:, 1:4] = [0.1, 0.2, 0.0]
-    p[:, 4:] = [0.0, 110.0, 470.0]
+    p[:, 4:] = [0.0, 110.0, 580.0]
     return p
 
 
@@ -76,9 +76,37 @@ def expected_keypoints() -> np.ndarray:
     return np.stack(out, 1)
 
 
-def _project(points_cam: np.ndarray) -> np.ndarray:
-    uv, _ = cv2.projectPoints(points_cam.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, DIST8)
+def _project(points_cam: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
+    uv, _ = cv2.projectPoints(points_cam.reshape(-1, 1, 3).astype(float), np.zeros(3), np.zeros(3), K,
+                              np.zeros(5) if dist is None else dist)
     return uv.reshape(-1, 2)
+
+
+def paint(kp: np.ndarray, objects: list, K: np.ndarray, dist: np.ndarray | None, size=(W, H), seed: int = 5) -> list:
+    """BGR frames: a textured table, each frame's object (camera-frame vertices) as a grey
+    silhouette, each hand (kp (T,S,21,3), camera frame) as a skin-coloured skeleton and palm;
+    projected with ``dist`` (None: pinhole)."""
+    w, h = size
+    rng = np.random.default_rng(seed)
+    table = cv2.GaussianBlur(rng.integers(0, 255, (h, w, 3)).astype(np.uint8), (0, 0), 3)
+    table = (0.35 * table + [60, 90, 120]).clip(0, 255).astype(np.uint8)  # BGR brownish wood
+    out = []
+    for t in range(len(kp)):
+        img = table.copy()
+        if objects is not None and objects[t] is not None:
+            hull = cv2.convexHull(_project(objects[t], K, dist).astype(np.float32)).astype(np.int32)
+            cv2.fillConvexPoly(img, hull, (150, 150, 150), cv2.LINE_AA)
+        for s in range(kp.shape[1]):
+            if not np.isfinite(kp[t, s]).all() or not kp[t, s].any():
+                continue
+            uv = _project(kp[t, s], K, dist)
+            palm = cv2.convexHull(uv[[0, 1, 2, 5, 9, 13, 17]].astype(np.float32)).astype(np.int32)
+            cv2.fillConvexPoly(img, palm, (120, 160, 215), cv2.LINE_AA)
+            for a, b in BONES:
+                cv2.line(img, tuple(np.round(uv[a]).astype(int)), tuple(np.round(uv[b]).astype(int)), (120, 160, 215), 9,
+                         cv2.LINE_AA)
+        out.append(img)
+    return out
 
 
 def write_tree(root: Path, mano_dir: Path) -> Path:
@@ -96,7 +124,7 @@ def write_tree(root: Path, mano_dir: Path) -> Path:
     np.save(seqs / f"{SEQ}.object.npy", obj)
     meta = root / "meta"
     (meta / "object_vtemplates" / OBJECT).mkdir(parents=True, exist_ok=True)
-    mesh, top = _box_mesh()
+    mesh, top = box_mesh()
     mesh.export(meta / "object_vtemplates" / OBJECT / "mesh.obj")
     (meta / "object_vtemplates" / OBJECT / "parts.json").write_text(json.dumps(top.astype(int).tolist()))
     (meta / "misc.json").write_text(json.dumps({SUBJECT: {"ioi_offset": IOI_OFFSET, "gender": "female",
@@ -104,26 +132,14 @@ def write_tree(root: Path, mano_dir: Path) -> Path:
     images = root / "images" / SUBJECT / SEQ / "0"
     images.mkdir(parents=True, exist_ok=True)
     kp = expected_keypoints()
-    rng = np.random.default_rng(5)
-    table = cv2.GaussianBlur(rng.integers(0, 255, (H, W, 3)).astype(np.uint8), (0, 0), 3)
-    table = (0.35 * table + [60, 90, 120]).clip(0, 255).astype(np.uint8)  # BGR brownish wood
+    objects = []
     for t in range(T):
-        img = table.copy()
-        # the box (rigid part only for the silhouette; close enough for a painted fixture)
         verts = mesh.vertices.copy()
         verts[top] = verts[top] @ Rotation.from_rotvec([0, 0, obj[t, 0]]).as_matrix().T
         wfo = np.eye(4)
         wfo[:3, :3], wfo[:3, 3] = Rotation.from_rotvec(obj[t, 1:4]).as_matrix(), obj[t, 4:] / 1000.0
-        cam = (verts / 1000.0) @ (w2c[t] @ wfo)[:3, :3].T + (w2c[t] @ wfo)[:3, 3]
-        hull = cv2.convexHull(_project(cam).astype(np.float32)).astype(np.int32)
-        cv2.fillConvexPoly(img, hull, (150, 150, 150), cv2.LINE_AA)
-        for s in range(2):
-            uv = _project(kp[t, s])
-            palm = cv2.convexHull(uv[[0, 1, 2, 5, 9, 13, 17]].astype(np.float32)).astype(np.int32)
-            cv2.fillConvexPoly(img, palm, (120, 160, 215), cv2.LINE_AA)
-            for a, b in BONES:
-                cv2.line(img, tuple(np.round(uv[a]).astype(int)), tuple(np.round(uv[b]).astype(int)), (120, 160, 215), 9,
-                         cv2.LINE_AA)
+        objects.append((verts / 1000.0) @ (w2c[t] @ wfo)[:3, :3].T + (w2c[t] @ wfo)[:3, 3])
+    for t, img in enumerate(paint(kp, objects, K, DIST8)):
         img[MARK] = 8 * (t + IOI_OFFSET)
         cv2.imwrite(str(images / f"{t + IOI_OFFSET:05d}.jpg"), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
     return root

@@ -23,6 +23,7 @@ _BASES = {"index": (0.090, 0.026), "middle": (0.092, 0.004), "ring": (0.086, -0.
 _LENGTHS = {"index": (0.040, 0.024, 0.022), "middle": (0.045, 0.027, 0.023), "ring": (0.042, 0.026, 0.023),
             "pinky": (0.033, 0.019, 0.021)}
 _ORDER = ("index", "middle", "pinky", "ring")  # MANO's finger order in joints 1..12
+WRIST_OFFSET = np.array([0.012, -0.004, 0.003])
 TIP_OF = {"thumb": 15, "index": 3, "middle": 6, "ring": 12, "pinky": 9}  # distal joint each tip rides on
 
 
@@ -41,12 +42,14 @@ def rest_joints(side: str = "right") -> tuple[np.ndarray, np.ndarray]:
     J[13:16] = thumb
     tips["thumb"] = thumb[2] + [0.020, 0.012, 0.0]
     T = np.array([tips[n] for n in ("thumb", "index", "middle", "ring", "pinky")])
+    J, T = J + WRIST_OFFSET, T + WRIST_OFFSET  # the wrist off the origin, as MANO's is: centring conventions show
     if side == "left":
         J, T = J * [1, -1, 1], T * [1, -1, 1]
     return J, T
 
 
-def write_hand_model(path: Path, side: str, seed: int = 0) -> Path:
+def write_hand_model(path: Path, side: str, seed: int = 0, components: np.ndarray | None = None) -> Path:
+    """The model file; ``components``: its PCA basis (45,45) (default the identity)."""
     rng = np.random.default_rng(seed)
     J, tips = rest_joints(side)
     v = np.zeros((N_VERTS, 3))
@@ -64,7 +67,7 @@ def write_hand_model(path: Path, side: str, seed: int = 0) -> Path:
     shapedirs[:, :, 0] = v * 0.05  # beta 0 scales the hand by 5 % per unit
     d = {"v_template": v, "shapedirs": shapedirs, "posedirs": np.zeros((N_VERTS, 3, 135)), "J_regressor": Jr,
          "weights": w, "kintree_table": np.stack([np.where(PARENTS < 0, 4294967295, PARENTS), np.arange(16)]),
-         "f": rng.integers(0, N_VERTS, (1538, 3)), "hands_components": np.eye(45),
+         "f": rng.integers(0, N_VERTS, (1538, 3)), "hands_components": np.eye(45) if components is None else components,
          "hands_mean": np.tile([0.0, 0.0, 0.15], 15)}  # a slight curl: flat_hand_mean=False shows
     with open(path, "wb") as f:
         pickle.dump(d, f, protocol=2)

@@ -44,7 +44,7 @@ def test_frames_are_aligned_by_ioi_offset_and_undistorted(tree):
     # the painted skeletons are where the pinhole projection puts the joints once undistorted
     hit_und, hit_raw, shift = [], [], []
     for i in range(8):
-        raw = cv2.cvtColor(cv2.imread(str(src._image(4 + i))), cv2.COLOR_BGR2RGB)
+        raw = cv2.cvtColor(cv2.imread(str(src.seq.images[4 + i])), cv2.COLOR_BGR2RGB)
         for s in range(2):
             uv = np.round(project(c.keypoints[i, s], intr)).astype(int)
             uv = uv[(uv[:, 0] >= 0) & (uv[:, 0] < fx.W) & (uv[:, 1] >= 0) & (uv[:, 1] < fx.H)]
@@ -107,10 +107,6 @@ def test_curate_arctic_tree_through_every_stage(tree, tmp_path, prefect_api, das
     assert all(r.extra["qc_contact_checked"] for r in read_records(store, ret).values())  # the object mesh is used
     for stage in ("retarget", "render", "composite"):
         hs = store[Unit(stage, clip, embodiment="allegro").path]["hand_status"][:]
-        assert (hs[:, 0] == Reason.OK).all() and (hs == Reason.OK).mean() > 0.5, (stage, hs)
-    # the Allegro is larger than the hand it replaces: the right one goes into the box as the lid opens,
-    # and the penetration check (on the object's mesh and pose) says so
-    ledger = read_ledger(store)
-    assert set(ledger["reason_name"]) == {"PENETRATION"} and set(ledger["side"]) == {"right"}
-    kept = store[Unit("qc", clip, embodiment="allegro").path]["status"][:] == Reason.OK
-    assert kept.sum() >= 4 and not kept[ledger["frame"].to_numpy()].any()
+        assert (hs == Reason.OK).all(), (stage, hs)
+    assert (store[Unit("qc", clip, embodiment="allegro").path]["status"][:] == Reason.OK).all()
+    assert not len(read_ledger(store))

@@ -79,7 +79,7 @@ def test_quaternions_tips_and_centring():
 def test_centre_joint_is_where_transl_puts_it(mano_dir):
     betas, go, hp, tr = _params(3)
     out = ManoModel.find(mano_dir, "right").forward(betas, go, hp, tr, ManoConvention(center_joint=9, tips=TIPS_MANOPTH))
-    assert np.allclose(out.joints[:, 9], tr)  # manopth center_idx=9: the middle knuckle sits at trans
+    assert np.allclose(out.joints[:, 9], tr)  # manotorch center_idx=9: the middle knuckle sits at trans
 
 
 def test_missing_and_malformed_model_files(tmp_path, monkeypatch):

@@ -46,7 +46,9 @@ class ManoConvention:
     pca: bool = False  # hand_pose is PCA coefficients (first n components) instead of 45 axis-angle values
     flat_hand_mean: bool = True  # False: the model's mean hand pose is added to hand_pose
     tips: tuple[int, ...] = TIPS_SMPLX
-    center_joint: int | None = None  # MANO-21 index subtracted before transl is added (manopth center_idx)
+    # MANO-21 joint moved to the origin before transl is added (manotorch's center_idx; manopth's
+    # applies only when no translation is passed, so a translated manopth pose is never centred)
+    center_joint: int | None = None
 
 
 @dataclass

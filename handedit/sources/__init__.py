@@ -14,15 +14,20 @@ from typing import Annotated, Iterator, Union
 from pydantic import Field, TypeAdapter
 
 from handedit.sources.arctic import ArcticSpec, ArcticTree
+from handedit.sources.hocap import HocapSpec, HocapTree
+from handedit.sources.hoi4d import Hoi4dSpec, Hoi4dTree
+from handedit.sources.oakink2 import Oakink2Spec, Oakink2Tree
 from handedit.sources.base import ClipChunk, ClipInfo, Source, SourceError, frame_status
 from handedit.sources.egodex import EgoDexSpec, EgoDexTree
 from handedit.sources.synthetic import SyntheticSpec
 from handedit.sources.video import VideoSpec
 
-SourceSpec = Annotated[Union[SyntheticSpec, VideoSpec, EgoDexSpec, ArcticSpec], Field(discriminator="kind")]
-TreeSpec = Annotated[Union[EgoDexTree, ArcticTree], Field(discriminator="kind")]
+SourceSpec = Annotated[Union[SyntheticSpec, VideoSpec, EgoDexSpec, ArcticSpec, Oakink2Spec, Hoi4dSpec, HocapSpec],
+                      Field(discriminator="kind")]
+TreeSpec = Annotated[Union[EgoDexTree, ArcticTree, Oakink2Tree, Hoi4dTree, HocapTree], Field(discriminator="kind")]
 _SPEC = TypeAdapter(SourceSpec)
-TREES = {"egodex": EgoDexTree, "arctic": ArcticTree}  # --source NAME -> its tree spec
+# --source NAME -> its tree spec
+TREES = {"egodex": EgoDexTree, "arctic": ArcticTree, "oakink2": Oakink2Tree, "hoi4d": Hoi4dTree, "hocap": HocapTree}
 # what each source needs beyond its files, and what it provides (`handedit sources list`)
 SOURCES: dict[str, dict[str, str]] = {
     "synthetic": {"needs": "nothing (generated)", "provides": "one right hand, exact keypoints, "
@@ -33,10 +38,16 @@ SOURCES: dict[str, dict[str, str]] = {
                "camera poses (ARKit world, Y up); no objects"},
     "arctic": {"needs": "an ARCTIC tree (raw_seqs/, meta/, images/) and your MANO model (--mano-dir)",
                "provides": "both hands (MANO), egocentric camera (undistorted), articulated object pose + mesh + mask"},
+    "oakink2": {"needs": "an OakInk2 tree (anno_preview/, data/, object_raw/), your MANO model, torch (its pickles)",
+                "provides": "both hands (MANO, quaternions), egocentric camera, object pose + mesh + mask"},
+    "hoi4d": {"needs": "a HOI4D tree (frames decoded to align_rgb/), handpose/, camera_params/, CAD models, your MANO model",
+              "provides": "hands annotated (mostly the right), object pose (category-level) + CAD mesh, shipped 2-D object masks"},
+    "hocap": {"needs": "an HO-Cap data folder (calibration/, models/, subject_*/) and your MANO model",
+              "provides": "the annotated hands (MANO, 45 PCA), HoloLens egocentric camera, object pose + mesh + mask"},
 }
 
 
-def parse_spec(data: dict) -> SyntheticSpec | VideoSpec | EgoDexSpec | ArcticSpec:
+def parse_spec(data: dict):
     return _SPEC.validate_python(data)
 
 
@@ -60,7 +71,8 @@ def iter_groups(trees, clips=()) -> Iterator[tuple[str, list]]:
             yield f"{tree.kind}-{name}", specs
 
 
-__all__ = ["SOURCES", 
-    "ArcticSpec", "ArcticTree", "ClipChunk", "ClipInfo", "EgoDexSpec", "EgoDexTree", "Source", "SourceError", "SourceSpec", "SyntheticSpec",
-    "TREES", "TreeSpec", "VideoSpec", "frame_status", "iter_groups", "open_source", "open_source_json", "parse_spec",
+__all__ = [
+    "SOURCES", "TREES", "ArcticSpec", "ArcticTree", "ClipChunk", "ClipInfo", "EgoDexSpec", "EgoDexTree", "HocapSpec",
+    "HocapTree", "Hoi4dSpec", "Hoi4dTree", "Oakink2Spec", "Oakink2Tree", "Source", "SourceError", "SourceSpec",
+    "SyntheticSpec", "TreeSpec", "VideoSpec", "frame_status", "iter_groups", "open_source", "open_source_json", "parse_spec",
 ]
