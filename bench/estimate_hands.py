@@ -29,19 +29,10 @@ sys.path.insert(0, str(ROOT))
 from handedit.camera import project  # noqa: E402
 from handedit.keypoints import SIDES  # noqa: E402
 from handedit.sources.synthetic import make_clip_specs  # noqa: E402
-from handedit.vision.estimate_hands import EstimateHandsConfig, estimate_hands  # noqa: E402
+from handedit.vision.estimate_hands import EstimateHandsConfig, aligned_error_mm, estimate_hands  # noqa: E402
 
 EGODEX = Path(os.environ.get("HANDEDIT_EGODEX_ROOT", ROOT.parent / "shared/data/egodex"))
 REAL_VIDEO = Path(os.environ.get("HANDEDIT_REAL_VIDEO", ROOT.parent / "shared/data/real-hand-video/human_hand_video.mp4"))
-
-
-def rigid_error_mm(est: np.ndarray, gt: np.ndarray) -> float:
-    """Mean joint distance after the best rotation + translation of est onto gt (Kabsch)."""
-    a, b = est - est.mean(0), gt - gt.mean(0)
-    U, _, Vt = np.linalg.svd(a.T @ b)
-    d = np.sign(np.linalg.det(U @ Vt))
-    R = (U @ np.diag([1, 1, d]) @ Vt).T
-    return float(np.linalg.norm(a @ R.T - b, axis=1).mean() * 1000)
 
 
 def hand_size(kp: np.ndarray) -> float:
@@ -68,7 +59,7 @@ def compare(est, gt_kp: np.ndarray, gt_valid: np.ndarray, gt_sides: tuple[str, .
                 continue
             rows["kept"] += 1
             rows["px"].append(px)
-            rows["mm"].append(rigid_error_mm(e, gt_kp[i, g]))
+            rows["mm"].append(aligned_error_mm(e, gt_kp[i, g]))
             dz = e[0, 2] - gt_kp[i, g, 0, 2]
             rows["depth_mm"].append(abs(dz) * 1000)
             rows["depth_pct"].append(100 * abs(dz) / gt_kp[i, g, 0, 2])

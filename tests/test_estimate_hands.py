@@ -17,8 +17,8 @@ from handedit.models.mediapipe_hands import HandModelError, HandModelFiles, Rect
 from handedit.reasons import Reason
 from handedit.sources import VideoSpec
 from handedit.sources.synthetic import make_clip_specs
-from handedit.vision.estimate_hands import (HUMAN_BONES_M, EstimateHandsConfig, _Det, assign_sides, bone_lengths,
-                                            estimate_hands, lift_bones, lift_pnp, one_euro)
+from handedit.vision.estimate_hands import (HUMAN_BONES_M, EstimateHandsConfig, _Det, aligned_error_mm, assign_sides,
+                                            bone_lengths, estimate_hands, lift_bones, lift_pnp, one_euro)
 
 INTR = Intrinsics(440.0, 440.0, 320.0, 240.0, 640, 480)
 
@@ -41,14 +41,6 @@ def _frames(video: Path, n: int, size=(640, 360)) -> np.ndarray:
         assert ok
         out.append(cv2.cvtColor(cv2.resize(f, size, interpolation=cv2.INTER_AREA), cv2.COLOR_BGR2RGB))
     return np.stack(out)
-
-
-def _kabsch_mm(est: np.ndarray, gt: np.ndarray) -> float:
-    a, b = est - est.mean(0), gt - gt.mean(0)
-    U, _, Vt = np.linalg.svd(a.T @ b)
-    d = np.sign(np.linalg.det(U @ Vt))
-    R = (U @ np.diag([1, 1, d]) @ Vt).T
-    return float(np.linalg.norm(a @ R.T - b, axis=1).mean() * 1000)
 
 
 # ----------------------------------------------------------------------------- graph pieces
@@ -114,8 +106,33 @@ def test_sides_are_voted_per_track_and_split_within_a_frame():
     d = lambda f, t, p: _Det(f, t, None, None, 0.9, p, None)  # noqa: E731
     dets = [d(f, 0, 0.8 if f != 3 else 0.3) for f in range(6)]  # a right hand whose label flickers once
     dets += [d(f, 1, 0.7) for f in range(2, 6)]  # a second hand the classifier also calls right, less surely
-    side = assign_sides(dets)
-    assert side == {0: 1, 1: 0}
+    assert assign_sides(dets) == {0: 1, 1: 0}
+    # a long, sure track keeps its side against a short one that is surer per frame (the real video's case)
+    dets = [d(f, 0, 0.95) for f in range(600)] + [d(f, 1, 0.99) for f in range(100, 104)]
+    assert assign_sides(dets) == {0: 1, 1: 0}
+
+
+def test_qc_reasons_per_side_and_frame():
+    """A stand-in detector: a weak hand, a good one, one whose 2-D fingers no hand could
+    reach at its palm's depth, and a frame without any hand."""
+    from handedit.models.mediapipe_hands import HandLandmarks
+
+    c = make_clip_specs(1, n_frames=4)[0].open().read(0, 4)
+    gt = c.keypoints[1, 0].astype(np.float64)
+    xy = project(gt, INTR)
+    stretched = xy.copy()
+    for tip, mcp in ((8, 5), (12, 9), (16, 13), (20, 17)):
+        stretched[mcp + 1:tip + 1] = xy[mcp] + 3.0 * (xy[mcp + 1:tip + 1] - xy[mcp])
+    rect = Rect(float(xy[:, 0].mean()), float(xy[:, 1].mean()), 120.0, 120.0, 0.0)
+    lm = lambda uv, presence: HandLandmarks(uv, np.zeros(21), gt - gt.mean(0), presence, 0.9, rect)  # noqa: E731
+    script = [[(0, lm(xy, 0.3))], [(0, lm(xy, 0.95))], [(0, lm(stretched, 0.95))], []]
+    frames = iter(np.zeros((4, 480, 640, 3), np.uint8))
+    est = estimate_hands(frames, 4, INTR, 30.0, detector=lambda rgb, s=iter(script): next(s))
+    right = list(est.hand_status[:, 1])
+    assert right == [Reason.LOW_HAND_CONFIDENCE, Reason.OK, Reason.IMPLAUSIBLE_HAND, Reason.NO_HAND_DETECTED]
+    assert list(est.hand_status[:, 0]) == [Reason.ABSENT] * 3 + [Reason.NO_HAND_DETECTED]
+    assert "presence 0.30" in est.details[(0, 1)] and "bone lengths" in est.details[(2, 1)] and "[6, 7" in est.details[(2, 1)]
+    assert est.keypoints_valid[1, 1].all() and not est.keypoints_valid[[0, 2, 3]].any()
 
 
 def test_missing_models_name_the_fetch_command(tmp_path):
@@ -188,7 +205,7 @@ def test_synthetic_hand_errors_against_ground_truth(hand_models):
                 if np.linalg.norm(project(e, info.intrinsics) - project(gt, info.intrinsics), axis=1).mean() > 40:
                     continue  # not this hand
                 kept += 1
-                mm.append(_kabsch_mm(e, gt))
+                mm.append(aligned_error_mm(e, gt))
                 depth.append(abs(e[0, 2] - gt[0, 2]) / gt[0, 2])
     assert kept >= 30, kept
     assert np.mean(mm) < 45, np.mean(mm)

@@ -259,10 +259,13 @@ class LandmarkModel:
 class MediaPipeHands:
     """Palm detection + landmarks with tracking across consecutive frames (MediaPipe's loop)."""
 
-    def __init__(self, files: HandModelFiles, max_hands: int = 2, min_detection: float = 0.5, min_presence: float = 0.5):
+    def __init__(self, files: HandModelFiles, max_hands: int = 2, min_detection: float = 0.5, min_presence: float = 0.5,
+                 report_floor: float = 0.2):
+        """Hands with presence >= ``min_presence`` are tracked into the next frame; those
+        >= ``report_floor`` are reported (the caller decides what a weak one is worth)."""
         self.palm = PalmDetector(files.palm, min_detection)
         self.landmarks = LandmarkModel(files.landmark)
-        self.max_hands, self.min_presence = max_hands, min_presence
+        self.max_hands, self.min_presence, self.report_floor = max_hands, min_presence, min(report_floor, min_presence)
         self._tracked: list[tuple[int, Rect]] = []
         self._next_id = 0
         self.palm_calls = 0
@@ -283,13 +286,13 @@ class MediaPipeHands:
         found: list[tuple[int, HandLandmarks]] = []
         for tid, r in rois:
             lm = self.landmarks(rgb, r)
-            if lm.presence < self.min_presence:
+            if lm.presence < self.report_floor:
                 continue
             if any(_iou(lm.rect.box(), o.rect.box()[None])[0] > 0.5 and _overlap(lm, o) for _, o in found):
                 continue  # the same hand reached from two rectangles
             found.append((tid, lm))
         found = found[: self.max_hands]
-        self._tracked = [(tid, landmarks_rect(lm.image_xy)) for tid, lm in found]
+        self._tracked = [(tid, landmarks_rect(lm.image_xy)) for tid, lm in found if lm.presence >= self.min_presence]
         return found
 
 

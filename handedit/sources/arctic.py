@@ -28,35 +28,28 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Iterator, Literal
+from typing import Literal
 
 import numpy as np
-import pydantic
 
 from handedit.hands.mano import TIPS_SMPLX, ManoConvention, rodrigues
 from handedit.keypoints import SIDES
 from handedit.sources.base import SourceError
 from handedit.sources.mano_model import mano_digest, mano_model
-from handedit.sources.sequence import Sequence, SequenceSource, load_mesh, load_pickle
+from handedit.sources.sequence import ManoSpecBase, ManoTreeBase, Sequence, SequenceSource, load_mesh, load_pickle
 from handedit.vision.object_depth import rasterize_depth
 
 CONVENTION = ManoConvention(pca=False, flat_hand_mean=False, tips=TIPS_SMPLX)  # smplx MANO, as ARCTIC builds it
 EGO_VIEW = 0
 
 
-class ArcticSpec(pydantic.BaseModel):
+class ArcticSpec(ManoSpecBase):
     """One ARCTIC sequence (what workers receive)."""
-
-    model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
 
     kind: Literal["arctic"] = "arctic"
     root: Path  # the folder holding raw_seqs/, meta/, images/
     subject: str
     sequence: str
-    mano_dir: Path | None = None  # MANO_RIGHT.pkl + MANO_LEFT.pkl (default $HANDEDIT_MANO_DIR)
-    frames: tuple[int, int] | None = None
-    resize: tuple[int, int] | None = None
-    clip_id: str | None = None
 
     @property
     def id(self) -> str:
@@ -71,39 +64,22 @@ class ArcticSpec(pydantic.BaseModel):
         return SequenceSource(load_sequence(self), self.frames, self.resize, "ARCTIC")
 
 
-class ArcticTree(pydantic.BaseModel):
+class ArcticTree(ManoTreeBase):
     """Every sequence under ``raw_seqs/`` (subjects sorted, sequences sorted), one group per subject."""
 
-    model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
-
     kind: Literal["arctic"] = "arctic"
-    root: Path
-    tasks: list[str] = pydantic.Field(default_factory=list, description="subjects (e.g. s01); empty: every subject")
-    max_clips: int | None = pydantic.Field(None, ge=1)
-    frames: tuple[int, int] | None = None
-    resize: tuple[int, int] | None = None
-    mano_dir: Path | None = None
 
-    def groups(self) -> Iterator[tuple[str, list[ArcticSpec]]]:
+    def _spec(self, **kw) -> ArcticSpec:
+        return ArcticSpec(root=self.root, **kw)
+
+    def _groups(self):
         seqs = Path(self.root) / "raw_seqs"
         if not seqs.is_dir():
             raise SourceError(f"ARCTIC root {self.root} has no raw_seqs/ folder; pass --root the folder holding "
                               f"raw_seqs/, meta/ and images/ (arctic_data/data).")
-        subjects = self.tasks or sorted(p.name for p in seqs.iterdir() if p.is_dir())
-        left = self.max_clips
-        for sub in subjects:
+        for sub in self.tasks or sorted(p.name for p in seqs.iterdir() if p.is_dir()):
             names = sorted(p.name[: -len(".mano.npy")] for p in (seqs / sub).glob("*.mano.npy"))
-            specs = [ArcticSpec(root=self.root, subject=sub, sequence=n, mano_dir=self.mano_dir, frames=self.frames,
-                                resize=self.resize) for n in names]
-            if left is not None:
-                specs, left = specs[:left], left - min(left, len(specs))
-            if specs:
-                yield sub, specs
-            if left == 0:
-                return
-
-    def clips(self) -> list[ArcticSpec]:
-        return [s for _, g in self.groups() for s in g]
+            yield sub, [{"subject": sub, "sequence": n} for n in names]
 
 
 def load_sequence(spec: ArcticSpec) -> Sequence:

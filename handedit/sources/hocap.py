@@ -28,34 +28,27 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Iterator, Literal
+from typing import Literal
 
 import numpy as np
-import pydantic
 
 from handedit.hands.mano import TIPS_MANOPTH, ManoConvention
 from handedit.keypoints import SIDES
 from handedit.sources.base import SourceError
 from handedit.sources.mano_model import mano_digest, mano_model
-from handedit.sources.sequence import Sequence, SequenceSource, load_mesh
+from handedit.sources.sequence import ManoSpecBase, ManoTreeBase, Sequence, SequenceSource, load_mesh
 from handedit.vision.object_depth import rasterize_depth
 
 CONVENTION = ManoConvention(pca=True, flat_hand_mean=True, tips=TIPS_MANOPTH)  # manopth, 45 PCA components
 _SIDE_INDEX = {"right": 0, "left": 1}  # poses_m.npy's first axis
 
 
-class HocapSpec(pydantic.BaseModel):
-    model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
-
+class HocapSpec(ManoSpecBase):
     kind: Literal["hocap"] = "hocap"
     root: Path  # holding calibration/, models/, subject_*/
     subject: str  # subject_1
     sequence: str  # 20231025_165502
     image_pattern: str = "{serial}/color_{frame:06d}.jpg"
-    mano_dir: Path | None = None
-    frames: tuple[int, int] | None = None
-    resize: tuple[int, int] | None = None
-    clip_id: str | None = None
 
     @property
     def id(self) -> str:
@@ -65,36 +58,21 @@ class HocapSpec(pydantic.BaseModel):
         return SequenceSource(load_sequence(self), self.frames, self.resize, "HO-Cap")
 
 
-class HocapTree(pydantic.BaseModel):
-    model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
+class HocapTree(ManoTreeBase):
+    """Every ``subject_*/<date>/meta.json`` (sorted), one group per subject (``tasks``: subjects)."""
 
     kind: Literal["hocap"] = "hocap"
-    root: Path
-    tasks: list[str] = pydantic.Field(default_factory=list, description="subjects (subject_1, ...); empty: all")
-    max_clips: int | None = pydantic.Field(None, ge=1)
-    frames: tuple[int, int] | None = None
-    resize: tuple[int, int] | None = None
-    mano_dir: Path | None = None
 
-    def groups(self) -> Iterator[tuple[str, list[HocapSpec]]]:
+    def _spec(self, **kw) -> HocapSpec:
+        return HocapSpec(root=self.root, **kw)
+
+    def _groups(self):
         root = Path(self.root)
         if not (root / "calibration").is_dir():
             raise SourceError(f"HO-Cap root {root} has no calibration/ folder; pass --root the toolkit's data folder "
                               f"(calibration/, models/, subject_*/).")
-        subjects = self.tasks or sorted(p.name for p in root.glob("subject_*") if p.is_dir())
-        left = self.max_clips
-        for sub in subjects:
-            specs = [HocapSpec(root=root, subject=sub, sequence=p.parent.name, mano_dir=self.mano_dir, frames=self.frames,
-                               resize=self.resize) for p in sorted((root / sub).glob("*/meta.json"))]
-            if left is not None:
-                specs, left = specs[:left], left - min(left, len(specs))
-            if specs:
-                yield sub, specs
-            if left == 0:
-                return
-
-    def clips(self) -> list[HocapSpec]:
-        return [s for _, g in self.groups() for s in g]
+        for sub in self.tasks or sorted(p.name for p in root.glob("subject_*") if p.is_dir()):
+            yield sub, [{"subject": sub, "sequence": p.parent.name} for p in sorted((root / sub).glob("*/meta.json"))]
 
 
 def quat_pose(q: np.ndarray) -> np.ndarray:

@@ -25,17 +25,16 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Iterator, Literal
+from typing import Literal
 
 import cv2
 import numpy as np
-import pydantic
 
 from handedit.hands.mano import TIPS_MANOPTH, ManoConvention
 from handedit.keypoints import SIDES
 from handedit.sources.base import SourceError
 from handedit.sources.mano_model import mano_digest, mano_model
-from handedit.sources.sequence import Sequence, SequenceSource, load_mesh, load_pickle
+from handedit.sources.sequence import ManoSpecBase, ManoTreeBase, Sequence, SequenceSource, load_mesh, load_pickle
 from handedit.vision.object_depth import rasterize_depth
 
 CONVENTION = ManoConvention(pca=False, flat_hand_mean=True, tips=TIPS_MANOPTH)  # manopth, camera frame
@@ -72,19 +71,16 @@ def decode_mask(rgb: np.ndarray) -> np.ndarray:
     return labels
 
 
-class Hoi4dSpec(pydantic.BaseModel):
-    model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
+_ROOTS = ("handpose_root", "camera_root", "cad_root")
 
+
+class Hoi4dSpec(ManoSpecBase):
     kind: Literal["hoi4d"] = "hoi4d"
     root: Path
     sequence: str  # e.g. ZY20210800004/H4/C8/N14/S71/s03/T2
     handpose_root: Path | None = None
     camera_root: Path | None = None
     cad_root: Path | None = None
-    mano_dir: Path | None = None
-    frames: tuple[int, int] | None = None
-    resize: tuple[int, int] | None = None
-    clip_id: str | None = None
 
     @property
     def id(self) -> str:
@@ -99,41 +95,25 @@ class Hoi4dSpec(pydantic.BaseModel):
         return SequenceSource(load_sequence(self), self.frames, self.resize, "HOI4D")
 
 
-class Hoi4dTree(pydantic.BaseModel):
-    """Every sequence under ``root`` (a folder with ``align_rgb/``), sorted; groups by camera."""
-
-    model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
+class Hoi4dTree(ManoTreeBase):
+    """Every sequence under ``root`` (a folder with ``align_rgb/``), sorted; one group per camera
+    (``tasks``: ZY... folders)."""
 
     kind: Literal["hoi4d"] = "hoi4d"
-    root: Path
-    tasks: list[str] = pydantic.Field(default_factory=list, description="camera folders (ZY...); empty: all")
-    max_clips: int | None = pydantic.Field(None, ge=1)
-    frames: tuple[int, int] | None = None
-    resize: tuple[int, int] | None = None
-    mano_dir: Path | None = None
     handpose_root: Path | None = None
     camera_root: Path | None = None
     cad_root: Path | None = None
 
-    def groups(self) -> Iterator[tuple[str, list[Hoi4dSpec]]]:
+    def _spec(self, **kw) -> Hoi4dSpec:
+        return Hoi4dSpec(root=self.root, **{k: getattr(self, k) for k in _ROOTS}, **kw)
+
+    def _groups(self):
         root = Path(self.root)
         if not root.is_dir():
             raise SourceError(f"HOI4D root {root} is not a directory; pass --root the folder holding ZY2021080000*/.")
-        cams = self.tasks or sorted(p.name for p in root.iterdir() if p.is_dir() and p.name.startswith("ZY"))
-        left = self.max_clips
-        extra = {k: getattr(self, k) for k in ("mano_dir", "handpose_root", "camera_root", "cad_root", "frames", "resize")}
-        for cam in cams:
+        for cam in self.tasks or sorted(p.name for p in root.iterdir() if p.is_dir() and p.name.startswith("ZY")):
             seqs = sorted(str(p.parent.relative_to(root)) for p in (root / cam).glob("*/*/*/*/*/*/align_rgb"))
-            specs = [Hoi4dSpec(root=root, sequence=s, **extra) for s in seqs]
-            if left is not None:
-                specs, left = specs[:left], left - min(left, len(specs))
-            if specs:
-                yield cam, specs
-            if left == 0:
-                return
-
-    def clips(self) -> list[Hoi4dSpec]:
-        return [s for _, g in self.groups() for s in g]
+            yield cam, [{"sequence": s} for s in seqs]
 
 
 def _pose(path: Path) -> np.ndarray:

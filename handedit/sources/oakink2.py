@@ -22,16 +22,15 @@ mesh's silhouette.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Iterator, Literal
+from typing import Literal
 
 import numpy as np
-import pydantic
 
 from handedit.hands.mano import TIPS_MANOPTH, ManoConvention, quat_wxyz_to_axis_angle
 from handedit.keypoints import SIDES
 from handedit.sources.base import SourceError
 from handedit.sources.mano_model import mano_digest, mano_model
-from handedit.sources.sequence import Sequence, SequenceSource, load_mesh, load_pickle
+from handedit.sources.sequence import ManoSpecBase, ManoTreeBase, Sequence, SequenceSource, load_mesh, load_pickle
 from handedit.vision.object_depth import rasterize_depth
 
 CONVENTION = ManoConvention(pca=False, flat_hand_mean=True, tips=TIPS_MANOPTH, center_joint=0)  # manotorch
@@ -39,16 +38,10 @@ EGO = "egocentric"
 _PREFIX = {"left": "lh__", "right": "rh__"}
 
 
-class Oakink2Spec(pydantic.BaseModel):
-    model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
-
+class Oakink2Spec(ManoSpecBase):
     kind: Literal["oakink2"] = "oakink2"
     root: Path  # the dataset prefix: anno_preview/, data/, object_raw/
     sequence: str  # seq_token, e.g. scene_01__A001++seq__0123__2023-09-01-10-00-00
-    mano_dir: Path | None = None
-    frames: tuple[int, int] | None = None
-    resize: tuple[int, int] | None = None
-    clip_id: str | None = None
 
     @property
     def id(self) -> str:
@@ -58,32 +51,20 @@ class Oakink2Spec(pydantic.BaseModel):
         return SequenceSource(load_sequence(self), self.frames, self.resize, "OakInk2")
 
 
-class Oakink2Tree(pydantic.BaseModel):
-    """Every ``anno_preview/*.pkl`` (sorted), one group."""
-
-    model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
+class Oakink2Tree(ManoTreeBase):
+    """Every ``anno_preview/*.pkl`` (sorted), one group (``tasks``: sequence tokens)."""
 
     kind: Literal["oakink2"] = "oakink2"
-    root: Path
-    tasks: list[str] = pydantic.Field(default_factory=list, description="sequence tokens; empty: all")
-    max_clips: int | None = pydantic.Field(None, ge=1)
-    frames: tuple[int, int] | None = None
-    resize: tuple[int, int] | None = None
-    mano_dir: Path | None = None
 
-    def groups(self) -> Iterator[tuple[str, list[Oakink2Spec]]]:
+    def _spec(self, **kw) -> Oakink2Spec:
+        return Oakink2Spec(root=self.root, **kw)
+
+    def _groups(self):
         anno = Path(self.root) / "anno_preview"
         if not anno.is_dir():
             raise SourceError(f"OakInk2 root {self.root} has no anno_preview/ folder; pass --root the dataset prefix "
                               f"(anno_preview/, data/, object_raw/).")
-        tokens = self.tasks or sorted(p.stem for p in anno.glob("*.pkl"))
-        specs = [Oakink2Spec(root=self.root, sequence=t, mano_dir=self.mano_dir, frames=self.frames, resize=self.resize)
-                 for t in tokens][: self.max_clips]
-        if specs:
-            yield "oakink2", specs
-
-    def clips(self) -> list[Oakink2Spec]:
-        return [s for _, g in self.groups() for s in g]
+        yield "oakink2", [{"sequence": t} for t in self.tasks or sorted(p.stem for p in anno.glob("*.pkl"))]
 
 
 def _np(x) -> np.ndarray:

@@ -13,10 +13,11 @@ import json
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import cv2
 import numpy as np
+import pydantic
 
 from handedit.camera import Intrinsics
 from handedit.digests import file_sha256
@@ -140,3 +141,51 @@ def load_mesh(path: Path, what: str, scale: float = 1.0) -> tuple[np.ndarray, np
     except Exception as exc:  # noqa: BLE001
         raise SourceError(f"{what} {path} could not be read ({type(exc).__name__}: {exc}); download the object models.") from None
     return np.asarray(m.vertices, float) * scale, np.asarray(m.faces, np.int64)
+
+
+class ManoSpecBase(pydantic.BaseModel):
+    """Fields every MANO-based clip spec has (each adds ``kind`` and where its clip is)."""
+
+    model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
+
+    mano_dir: Path | None = None  # MANO_RIGHT.pkl + MANO_LEFT.pkl (default $HANDEDIT_MANO_DIR)
+    frames: tuple[int, int] | None = None  # window [A, B) of the sequence
+    resize: tuple[int, int] | None = None  # working resolution (W, H)
+    clip_id: str | None = None
+
+
+class ManoTreeBase(pydantic.BaseModel):
+    """Fields and listing every MANO-based tree spec shares: ``_groups`` yields (group name,
+    the names of its sequences) in a stable order; ``groups`` makes the specs and applies
+    ``max_clips``."""
+
+    model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
+
+    root: Path
+    tasks: list[str] = pydantic.Field(default_factory=list, description="groups to take (subjects, cameras, "
+                                      "sequence tokens); empty: all")
+    max_clips: int | None = pydantic.Field(None, ge=1)
+    frames: tuple[int, int] | None = None
+    resize: tuple[int, int] | None = None
+    mano_dir: Path | None = None
+
+    def _groups(self) -> Iterator[tuple[str, list[dict]]]:
+        raise NotImplementedError
+
+    def _spec(self, **where):
+        raise NotImplementedError
+
+    def groups(self):
+        left = self.max_clips
+        common = {"mano_dir": self.mano_dir, "frames": self.frames, "resize": self.resize}
+        for name, wheres in self._groups():
+            specs = [self._spec(**common, **w) for w in wheres]
+            if left is not None:
+                specs, left = specs[:left], left - min(left, len(specs))
+            if specs:
+                yield name, specs
+            if left == 0:
+                return
+
+    def clips(self) -> list:
+        return [s for _, g in self.groups() for s in g]

@@ -14,9 +14,9 @@ what the dataset adapters provide, camera-frame MANO-order joints per side:
    perspective camera, HaMeR/WiLoR-style) can replace this step; detection, tracking
    and handedness stay MediaPipe's.
 2. **Sides.** A track is a hand followed from frame to frame by the landmark tracker.
-   Each track takes the side its frames vote for (mean right-hand probability), so a
-   flicker of the classifier never swaps a hand's side mid-track; two tracks in one frame
-   with the same side are split by their votes.
+   Each track takes the side its frames vote for (the sum of p_right - 0.5), so a flicker
+   of the classifier never swaps a hand's side mid-track; when two tracks in one frame
+   claim one side, the one with less evidence takes the other.
 3. **Smoothing.** A one-euro filter per track and coordinate (little lag when the hand
    moves fast, strong smoothing when it is still); the raw keypoints are kept beside.
 
@@ -155,7 +155,6 @@ def lift_bones(image_xy: np.ndarray, world: np.ndarray, intr: Intrinsics, hand_s
     z = min(f * L / max(np.linalg.norm(uv[a] - uv[b]), 1e-6) for a, b, L in segs)
     cam = np.zeros((len(uv), 3))
     cam[0] = rays[0] * z
-    miss = 0.0
     for j in range(1, len(uv)):
         p = PARENT[j]
         P, r, L = cam[p], rays[j], bones[j]
@@ -163,7 +162,6 @@ def lift_bones(image_xy: np.ndarray, world: np.ndarray, intr: Intrinsics, hand_s
         disc = b * b - 4 * a * c
         if disc < 0:  # the bone cannot reach the ray: the ray's closest point
             cam[j] = r * (r @ P) / a
-            miss += np.sqrt(-disc) / (2 * a)
             continue
         roots = ((-b - np.sqrt(disc)) / (2 * a), (-b + np.sqrt(disc)) / (2 * a))
         want = world[j, 2] - world[p, 2]  # the model's depth of the joint relative to its parent
@@ -193,7 +191,17 @@ def bone_lengths(kp: np.ndarray) -> np.ndarray:
 def implausible_bones(kp: np.ndarray, ratio: float) -> list[int]:
     """Joints whose bone is more than ``ratio`` off a human hand's."""
     r = bone_lengths(kp)[1:] / HUMAN_BONES_M[1:]
-    return [j + 1 for j in np.flatnonzero((r > ratio) | (r < 1.0 / ratio))]
+    return [int(j) + 1 for j in np.flatnonzero((r > ratio) | (r < 1.0 / ratio))]
+
+
+def aligned_error_mm(est: np.ndarray, gt: np.ndarray) -> float:
+    """Mean joint distance (mm) after the best rotation + translation of ``est`` onto ``gt``
+    (Kabsch): the shape error, without the depth and pose an RGB estimate cannot pin down."""
+    a, b = est - est.mean(0), gt - gt.mean(0)
+    U, _, Vt = np.linalg.svd(a.T @ b)
+    d = np.sign(np.linalg.det(U @ Vt))
+    R = (U @ np.diag([1, 1, d]) @ Vt).T
+    return float(np.linalg.norm(a @ R.T - b, axis=1).mean() * 1000)
 
 
 # ----------------------------------------------------------------------------- smoothing
@@ -238,20 +246,20 @@ class _Det:
 
 
 def assign_sides(dets: list[_Det]) -> dict[int, int]:
-    """track -> side index (SIDES order) from each track's mean right-hand probability;
-    two tracks sharing a frame get different sides (the more right-voting one is right)."""
-    votes: dict[int, list[float]] = {}
+    """track -> side index (SIDES order): each track takes the side its frames vote for
+    (sum of p_right - 0.5, so a long, sure track outweighs a short one); when two tracks
+    share a frame and a side, the one with less evidence for that side takes the other."""
+    votes: dict[int, float] = {}
     for d in dets:
-        votes.setdefault(d.track, []).append(d.p_right)
-    mean = {t: float(np.mean(v)) for t, v in votes.items()}
-    side = {t: int(m >= 0.5) for t, m in mean.items()}
+        votes[d.track] = votes.get(d.track, 0.0) + (d.p_right - 0.5)
+    side = {t: int(v >= 0) for t, v in votes.items()}
     by_frame: dict[int, list[int]] = {}
     for d in dets:
         by_frame.setdefault(d.frame, []).append(d.track)
     for tracks in by_frame.values():
         if len(tracks) == 2 and side[tracks[0]] == side[tracks[1]]:
-            a, b = sorted(tracks, key=lambda t: mean[t])
-            side[a], side[b] = 0, 1
+            weaker = min(tracks, key=lambda t: abs(votes[t]))
+            side[weaker] = 1 - side[weaker]
     return side
 
 
@@ -261,7 +269,7 @@ def estimate_hands(frames: Iterable[np.ndarray], n_frames: int, intr: Intrinsics
 
     ``detector``: a callable rgb -> [(track, HandLandmarks)] (default: MediaPipe from
     ``cfg``); ``lifter``: optional (rgb, HandLandmarks, side) -> (21,3) camera-frame joints
-    (the ONNX plug-in); default PnP."""
+    (the ONNX plug-in); default: ``cfg.depth``."""
     from handedit.models.mediapipe_hands import HandModelFiles, MediaPipeHands
 
     files = None
