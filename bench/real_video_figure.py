@@ -4,7 +4,7 @@ Rows are frames; columns: source | estimated keypoints (estimate_hands, skeleton
 side: left blue, right red) | restored background | robot pseudo-GT (harmonize).
 
     .venv/bin/handedit curate --video ../shared/data/real-hand-video/human_hand_video.mp4 --embodiment allegro --out runs/real
-    .venv/bin/python bench/real_video_figure.py --run runs/real [--embodiment allegro] [--frames 3] [--out docs/real_video_pseudo_gt.png]
+    .venv/bin/python bench/real_video_figure.py --run runs/real [--embodiment allegro] [--frames 3] [--out docs/real_video_pseudo_gt.jpg]
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ def main() -> None:
     ap.add_argument("--embodiment", default="allegro")
     ap.add_argument("--frames", type=int, default=3)
     ap.add_argument("--width", type=int, default=480, help="width of each panel")
-    ap.add_argument("--out", default=str(ROOT / "docs" / "real_video_pseudo_gt.png"))
+    ap.add_argument("--out", default=str(ROOT / "docs" / "real_video_pseudo_gt.jpg"))
     args = ap.parse_args()
     root = open_store(args.run)
     clip = args.clip or sorted(root["clips"].group_keys())[0]
