@@ -67,6 +67,31 @@ def test_hoi4d_camera_frame_hands_palette_masks_and_object_pose(trees):
     assert [s.sequence for s in Hoi4dTree(root=root, mano_dir=trees["mano"]).clips()] == [fx.HOI_SEQ]
 
 
+def test_hoi4d_reads_its_15_fps_video_when_frames_are_not_decoded(trees, tmp_path):
+    import shutil
+
+    import cv2
+
+    base = tmp_path / "copy"
+    shutil.copytree(trees["hoi4d"].parent, base)
+    rgb = base / "HOI4D_release" / fx.HOI_SEQ / "align_rgb"
+    jpgs = sorted(rgb.glob("*.jpg"))
+    for fps, name in ((15.0, "image.mp4"), (30.0, "fast.mp4")):
+        w = cv2.VideoWriter(str(rgb / name), cv2.VideoWriter_fourcc(*"mp4v"), fps, (afx.W, afx.H))
+        for p in jpgs:
+            w.write(cv2.imread(str(p)))
+        w.release()
+    want = Hoi4dSpec(root=trees["hoi4d"], sequence=fx.HOI_SEQ, mano_dir=trees["mano"]).open().read(0, afx.T)
+    for p in jpgs:
+        p.unlink()
+    c = Hoi4dSpec(root=base / "HOI4D_release", sequence=fx.HOI_SEQ, mano_dir=trees["mano"]).open().read(0, afx.T)
+    assert c.frame_ok.all() and np.abs(c.frames.astype(int) - want.frames).mean() < 6  # the same frames, re-encoded
+    assert np.array_equal(c.keypoints, want.keypoints)
+    (rgb / "fast.mp4").replace(rgb / "image.mp4")
+    with pytest.raises(SourceError, match="30 fps.*decode.py"):
+        Hoi4dSpec(root=base / "HOI4D_release", sequence=fx.HOI_SEQ, mano_dir=trees["mano"]).open()
+
+
 def test_hocap_pca_subject_betas_hololens_view_and_missing_frames(trees):
     src = HocapSpec(root=trees["hocap"], subject=fx.HOCAP_SUBJECT, sequence=fx.HOCAP_SEQ, mano_dir=trees["mano_pca"]).open()
     info, c = src.info(), src.read(0, afx.T)
@@ -86,7 +111,7 @@ def test_bad_layouts_are_one_clear_error(trees, tmp_path):
         Oakink2Tree(root=tmp_path).clips()
     with pytest.raises(SourceError, match="does not exist"):
         Oakink2Spec(root=trees["oakink2"], sequence="nope", mano_dir=trees["mano"]).open()
-    with pytest.raises(SourceError, match="decode.py"):
+    with pytest.raises(SourceError, match="neither frames nor image.mp4"):
         Hoi4dSpec(root=tmp_path, sequence=fx.HOI_SEQ, mano_dir=trees["mano"]).open()
     (tmp_path / "subject_1" / "old").mkdir(parents=True)
     with pytest.raises(SourceError, match="meta.json"):

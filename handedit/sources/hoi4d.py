@@ -3,7 +3,8 @@
 Layout (the release and HOI4D-Instructions' loaders):
 
 * ``<root>/<ZY...>/<H>/<C>/<N>/<S>/<s>/<T>/align_rgb/%05d.jpg``: the frames, decoded from
-  ``image.mp4`` at 15 fps by HOI4D's ``utils/decode.py`` (run it first; 1920x1080);
+  ``image.mp4`` at 15 fps by HOI4D's ``utils/decode.py`` (1920x1080); without them the
+  adapter decodes ``image.mp4`` itself when it runs at 15 fps (else: run decode.py);
 * ``.../2Dseg/mask/%05d.png``: 2-D masks, colour-coded with the VOC palette
   (``utils/color_map.py``); label 2 is the right hand, the left hand's label is its
   category's (``definitions/motion segmentation/label.csv``: "Left Hand"), every other
@@ -137,11 +138,21 @@ def load_sequence(spec: Hoi4dSpec) -> Sequence:
     seq = Path(spec.root) / spec.sequence
     handpose, cameras, cad = spec.roots()
     images = sorted((seq / "align_rgb").glob("*.jpg"))
-    if not images:
-        raise SourceError(f"HOI4D {seq}/align_rgb has no frames; decode image.mp4 with HOI4D's utils/decode.py "
-                          f"(15 fps, %05d.jpg) first.")
-    T = int(images[-1].stem) + 1
-    images = [seq / "align_rgb" / f"{k:05d}.jpg" for k in range(T)]
+    video = None
+    if images:
+        T = int(images[-1].stem) + 1
+        images = [seq / "align_rgb" / f"{k:05d}.jpg" for k in range(T)]
+    else:  # not decoded yet: the video itself, when it runs at the annotations' 15 fps
+        video, images = seq / "align_rgb" / "image.mp4", []
+        if not video.is_file():
+            raise SourceError(f"HOI4D {seq}/align_rgb has neither frames nor image.mp4; download the sequence.")
+        from handedit.sources.decode import VideoReader
+
+        probe = VideoReader(video, what="HOI4D video").probe
+        if abs(probe.fps - FPS) > 0.5:
+            raise SourceError(f"HOI4D video {video} runs at {probe.fps:g} fps, its annotations at {FPS:g}: decode it with "
+                              f"HOI4D's utils/decode.py (ffmpeg fps=15, align_rgb/%05d.jpg) first.")
+        T = probe.n_frames
     cam_id = spec.sequence.split("/")[0]
     K_p = cameras / cam_id / "intrin.npy"
     K = np.asarray(load_pickle(K_p, "HOI4D intrinsics", "download camera_params/ of the release"), float)
@@ -191,7 +202,8 @@ def load_sequence(spec: Hoi4dSpec) -> Sequence:
 
     return Sequence(
         clip_id=spec.id, keypoints=kp[:, keep], valid=valid[:, keep], hands=hands, images=images, K=K, fps=FPS,
-        object_pose=poses, object_mesh=mesh, object_mask=mask, files=[K_p, *( [mesh_p] if mesh_p else [])],
+        object_pose=poses, object_mesh=mesh, object_mask=mask, files=[K_p, *([mesh_p] if mesh_p else []), *([video] if video else [])],
+        video=video,
         meta={"dataset": "hoi4d", "sequence": spec.sequence, "category": name, "instance": instance,
               "mano": mano_digest(spec.mano_dir), "mano_convention": "manopth, axis-angle, flat_hand_mean=True, camera frame",
               "object_mask": "shipped 2Dseg masks (labels other than the hands)", "hands_annotated": list(hands)})

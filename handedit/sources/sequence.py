@@ -31,7 +31,7 @@ class Sequence:
     keypoints: np.ndarray  # (T,S,21,3) camera frame, metres, MANO-21
     valid: np.ndarray  # (T,S) bool: the side is annotated in that frame
     hands: tuple[str, ...]  # SIDES order
-    images: list[Path]  # (T,) one image file per frame
+    images: list[Path]  # (T,) one image file per frame (empty when ``video`` holds them)
     K: np.ndarray  # (3,3) at the images' native size
     fps: float
     world_from_camera: np.ndarray | None = None  # (T,4,4)
@@ -41,6 +41,7 @@ class Sequence:
     object_mask: Callable[[int, Intrinsics, tuple[int, int]], np.ndarray] | None = None  # frame k -> (H,W) bool
     files: list[Path] = field(default_factory=list)  # annotation files (their digests identify the clip)
     meta: dict = field(default_factory=dict)
+    video: Path | None = None  # the frames as one video file instead of image files
 
 
 class SequenceSource:
@@ -56,7 +57,15 @@ class SequenceSource:
         self.resize = tuple(resize) if resize else None
 
     @cached_property
+    def video(self):
+        from handedit.sources.decode import VideoReader
+
+        return VideoReader(self.seq.video, what=f"{self.what} video") if self.seq.video else None
+
+    @cached_property
     def native_size(self) -> tuple[int, int]:
+        if self.video is not None:
+            return self.video.size
         for k in range(*self.window):
             img = cv2.imread(str(self.seq.images[k]), cv2.IMREAD_UNCHANGED)
             if img is not None:
@@ -96,8 +105,12 @@ class SequenceSource:
         w, h = self.size
         frames = np.zeros((n, h, w, 3), np.uint8)
         ok = np.zeros(n, bool)
+        decoded = self.video.read(a + start, a + stop) if self.video is not None else None
         for i in range(n):
-            img = read_rgb(s.images[a + start + i], expect=self.native_size)
+            if decoded is not None:
+                img = decoded[0][i] if decoded[1][i] else None
+            else:
+                img = read_rgb(s.images[a + start + i], expect=self.native_size)
             if img is None:
                 continue
             if s.dist is not None:
