@@ -268,7 +268,8 @@ def parser() -> argparse.ArgumentParser:
 
     c.add_argument("--source", choices=sorted(TREES), help="a dataset tree (with --root)")
     c.add_argument("--root", help="the dataset's top folder, e.g. ../shared/data/egodex")
-    c.add_argument("--task", action="append", help="only this task folder (ARCTIC: subject) (repeatable)")
+    c.add_argument("--task", action="append", help="only this group of the tree (repeatable): EgoDex task folder, ARCTIC or HO-Cap "
+                   "subject, HOI4D camera (ZY...), OakInk2 sequence token")
     c.add_argument("--mano-dir", help="MANO-based sources: the folder holding your MANO_RIGHT.pkl and MANO_LEFT.pkl "
                    "(default $HANDEDIT_MANO_DIR; register at https://mano.is.tue.mpg.de)")
     c.add_argument("--max-clips", type=int, default=None, help="at most this many clips of the tree")
