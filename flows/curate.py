@@ -33,7 +33,7 @@ from prefect import flow, get_run_logger
 from tqdm import tqdm
 
 import handedit
-from handedit.digests import file_digest
+from handedit.digests import file_digest, model_digests as stage_model_digests
 from handedit.embodiments import EmbodimentError, describe_embodiment, get_embodiment, resolve_urdf
 from handedit.flows.api import run_url
 from handedit.flows.config import CurateConfig, PreflightError, dashboard_link
@@ -91,11 +91,8 @@ def model_digests(config: CurateConfig) -> dict[str, str]:
     """Content of each stage's model file (new weights at the same path change the run key)."""
     out = {}
     for stage in STAGES:
-        path = getattr(config.stage_config(stage), "model_path", None)
-        if path:
-            out[stage] = file_digest(Path(path))
-    if config.estimate_hands.mode != "never":  # the hand models it runs, wherever they are
-        out["estimate_hands:hand_models"] = config.estimate_hands.model_digest()
+        for name, d in stage_model_digests(config.stage_config(stage)).items():
+            out[stage if name == "model" else f"{stage}:{name}"] = d
     return out
 
 

@@ -98,7 +98,7 @@ def clip_nodes(clip: ClipPlan, scopes, frames_per_chunk: int, restore_window: in
         nodes.append(Node(estimate, 0, 0, clip.n_frames, deps, ctx, camera))
     for k, (s, e) in enumerate(ranges):
         ingest_ctx = {"source": clip.source_json, "has_object": clip.has_object, "has_gt": clip.has_gt, "has_arm": clip.has_arm,
-                      "hands": list(clip.hands)}
+                      "hands": list(clip.hands), "source_hands": list(clip.info.get("hands", clip.hands))}
         nodes.append(Node(ingest, k, s, e, [], ingest_ctx, {"source": clip.fingerprint}))
         if clip.estimate_hands:
             reg_deps = [Dep(ingest, k, ("frames", "status")),

@@ -32,3 +32,18 @@ def file_digest(path: str | Path) -> str:
         return file_sha256(path)
     except OSError:
         return "missing"
+
+
+def model_digests(stage_config) -> dict[str, str]:
+    """Content of every model file a stage's config runs, by input name: ``model`` for its
+    ``model_path`` (the ONNX plug-ins), plus what the config's own ``model_digests()`` names
+    (files it finds itself, e.g. estimate_hands' hand models). New weights at the same path
+    change these, so the stage, and only what reads it, runs again."""
+    out = {}
+    path = getattr(stage_config, "model_path", None)
+    if path:
+        out["model"] = file_digest(path)
+    own = getattr(stage_config, "model_digests", None)
+    if callable(own):
+        out.update(own())
+    return out

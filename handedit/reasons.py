@@ -101,6 +101,17 @@ def combine_hands(own: np.ndarray, ready: np.ndarray) -> np.ndarray:
     return out
 
 
+def follow_hands(own: np.ndarray, upstream: np.ndarray) -> np.ndarray:
+    """Per-hand codes after an upstream per-hand stage: ``own`` (n,S) where upstream was OK,
+    ABSENT where it saw no hand, UPSTREAM where it rejected (or never had) the side."""
+    up = np.asarray(upstream)
+    out = np.full(up.shape, Reason.UPSTREAM, STATUS_DTYPE)
+    out[up == Reason.ABSENT] = Reason.ABSENT
+    ok = up == Reason.OK
+    out[ok] = np.asarray(own, STATUS_DTYPE)[ok]
+    return out
+
+
 def combine(own: np.ndarray, ready: np.ndarray) -> np.ndarray:
     """A stage's status: its own code where its inputs were ready, UPSTREAM elsewhere."""
     out = np.asarray(own, dtype=STATUS_DTYPE).copy()

@@ -254,17 +254,15 @@ def clip_plan(spec, estimate: str = "auto"):
 
     info = open_source(spec).info()
     estimated = estimate == "always" or (estimate == "auto" and not info.has_keypoints)
-    if estimated:
-        from dataclasses import replace
-
-        info = replace(info, hands=SIDES, has_keypoints=True, keypoints_exact=False, has_arm=False)
     return ClipPlan(
         clip=info.clip_id, n_frames=info.n_frames, height=info.height, width=info.width,
         intrinsics=info.intrinsics.to_dict(), source_json=json.dumps(spec.model_dump(mode="json"), sort_keys=True,
                                                                      separators=(",", ":")),
         fingerprint=info.fingerprint, has_object=info.has_object, has_gt=bool(info.ground_truth),
-        info=jsonable({**vars(info), "intrinsics": info.intrinsics.to_dict()}), hands=tuple(info.hands),
-        has_arm=info.has_arm, has_keypoints=info.has_keypoints, world=info.world, keypoints_exact=info.keypoints_exact,
+        info=jsonable({**vars(info), "intrinsics": info.intrinsics.to_dict()}),  # the source's own (its hands too)
+        hands=SIDES if estimated else tuple(info.hands), has_arm=info.has_arm and not estimated,
+        has_keypoints=info.has_keypoints or estimated, world=info.world,
+        keypoints_exact=info.keypoints_exact or estimated,  # estimated joints are read off the pixels
         estimate_hands=estimated,
     )
 
@@ -315,15 +313,10 @@ def create_embodiment_units(root, config, plan, emb: dict) -> None:
 def _asset_inputs(config, nodes, emb: dict | None = None) -> None:
     """Files a stage reads besides the store are inputs too, by content: a stage's model
     weights, and the robot's URDF for the stages that load it."""
-    from handedit.digests import file_digest
+    from handedit.digests import model_digests
 
     for node in nodes:
-        cfg = config.stage_config(node.unit.stage)
-        path = getattr(cfg, "model_path", None)
-        if path:
-            node.fixed_inputs["model"] = file_digest(path)
-        if node.unit.stage == "estimate_hands":
-            node.fixed_inputs["hand_models"] = cfg.model_digest()
+        node.fixed_inputs.update(model_digests(config.stage_config(node.unit.stage)))
         if emb is not None and node.unit.stage in ("retarget", "render"):
             node.fixed_inputs["urdf"] = emb.get("urdf_digest", "")
 

@@ -18,7 +18,7 @@ def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     video = getattr(source, "video", None)  # video sources: what this chunk cost the decoder
     before = replace(video.stats) if video is not None else None
     chunk = source.read(job.start, job.stop)
-    kp, valid = on_sides(chunk.keypoints, chunk.keypoints_valid, source.info().hands, job.context.get("hands"))
+    kp, valid = on_sides(chunk.keypoints, chunk.keypoints_valid, job.context.get("source_hands"), job.context.get("hands"))
     arrays = {"frames": chunk.frames, "world_from_camera": chunk.world_from_camera, "keypoints": kp, "keypoints_valid": valid}
     if job.context.get("has_arm"):
         arrays["arm_keypoints"], arrays["arm_valid"] = chunk.arms()

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import numpy as np
 import zarr
 from prefect import task
 
 from handedit.camera import Intrinsics
-from handedit.reasons import Reason, combine, combine_hands, gate
+from handedit.reasons import combine, combine_hands, follow_hands, gate
 from handedit.vision.registration import RegistrationConfig, register as register_keypoints
 from handedit.storage import Unit, read_chunk
 from handedit.tasks._options import stage_options
@@ -27,8 +26,7 @@ def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
         names = ["frames", "keypoints", "keypoints_valid", "status", *(["arm_keypoints", "arm_valid"] if arm else [])]
         src = read_chunk(root, Unit("ingest", clip), names, job.start, job.stop)
     r = register_keypoints(src["frames"], src["keypoints"], src["keypoints_valid"], Intrinsics(**job.context["intrinsics"]),
-                           RegistrationConfig(**job.params), src.get("arm_keypoints"),
-                           exact=estimated or job.context.get("keypoints_exact", False))
+                           RegistrationConfig(**job.params), src.get("arm_keypoints"), exact=job.context.get("keypoints_exact", False))
     ok = gate(src["status"], est["status"]) if estimated else gate(src["status"])
     arrays = {"keypoints": r.keypoints, "keypoints_valid": r.keypoints_valid, "offset_px": r.offset_px, "scale": r.scale}
     if arm:
@@ -36,12 +34,9 @@ def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     present = r.hand_status == 1
     extra = {"offset_px_mean": [float(abs(r.offset_px[:, k][present[:, k]]).mean()) if present[:, k].any() else None
                                 for k in range(present.shape[1])]}
-    ready = np.repeat(ok[:, None], r.hand_status.shape[1], 1)
-    if estimated:  # a side the estimate rejected is UPSTREAM here; one it did not see is ABSENT
-        ready &= est["hand_status"] == Reason.OK
-    hand_status = combine_hands(r.hand_status, ready)
-    if estimated:
-        hand_status[est["hand_status"] == Reason.ABSENT] = Reason.ABSENT
+    hand_status = combine_hands(r.hand_status, ok[:, None])
+    if estimated:  # a side the estimate did not see is ABSENT here, one it rejected UPSTREAM
+        hand_status = follow_hands(hand_status, est["hand_status"])
     return StageOutput(arrays, combine(r.status, ok), method=r.method, extra=extra, hand_status=hand_status)
 
 

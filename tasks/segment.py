@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import numpy as np
 import zarr
 from prefect import task
 
 from handedit.camera import Intrinsics, project
-from handedit.reasons import Reason, combine, combine_hands, gate, per_frame
+from handedit.reasons import Reason, combine, combine_hands, follow_hands, gate, per_frame
 from handedit.vision.segment import SegmentConfig, segment as segment_frames
 from handedit.storage import Unit, read_chunk
 from handedit.tasks._options import stage_options
@@ -30,9 +29,7 @@ def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
             arm_2d = project(reg["arm_keypoints"][:, :, :2], intr)
         result = segment_frames(src["frames"], project(reg["keypoints"], intr), reg["keypoints_valid"], cfg,
                                 present=present, arm_2d=arm_2d)
-        hand_ready = ok[:, None] & present
-        hand_status = np.where(reg["hand_status"] == Reason.OK, combine_hands(result.hand_status, hand_ready),
-                               np.where(reg["hand_status"] == Reason.ABSENT, Reason.ABSENT, Reason.UPSTREAM))
+        hand_status = follow_hands(combine_hands(result.hand_status, ok[:, None]), reg["hand_status"])
     else:  # no keypoints at all: the hand is found by skin colour (and removed), not retargeted
         result = segment_frames(src["frames"], None, None, cfg)
         hand_status = combine_hands(result.hand_status, ok[:, None])

@@ -139,7 +139,7 @@ def test_missing_models_name_the_fetch_command(tmp_path):
     with pytest.raises(HandModelError, match="handedit models fetch"):
         HandModelFiles.in_dir(tmp_path)
     cfg = EstimateHandsConfig(model_dir=tmp_path)
-    assert cfg.model_digest() == "missing"
+    assert cfg.model_digests() == {"hand_models": "missing"}
     with pytest.raises(HandModelError, match=str(tmp_path)):
         estimate_hands(iter([]), 0, INTR, 30.0, cfg)
 

@@ -77,7 +77,8 @@ class HandPoseLifter:
 
     def __init__(self, path, intr: Intrinsics):
         self.model = load_model(path, CONTRACT)
-        self.size = self.model.fixed_hw("image")[0] if self.model.fixed_hw("image") else DEFAULT_CROP
+        hw = self.model.fixed_hw("image")
+        self.size = hw[0] if hw else DEFAULT_CROP
         self.intr = intr
 
     @property

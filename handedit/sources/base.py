@@ -88,16 +88,31 @@ class Source(Protocol):
         ...
 
 
+def take_clips(groups, max_clips: int | None):
+    """(group, specs) pairs of a tree listing, cut after ``max_clips`` specs in all (None: all);
+    lazy, so a long listing is read only as far as it is used."""
+    left = max_clips
+    for name, specs in groups:
+        if left is not None:
+            specs, left = specs[:left], left - min(left, len(specs))
+        if specs:
+            yield name, specs
+        if left == 0:
+            return
+
+
 def no_keypoints(n: int, sides: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Keypoint arrays for frames without any tracked hand."""
     return np.zeros((n, sides, N_JOINTS, 3), np.float32), np.zeros((n, sides, N_JOINTS), bool)
 
 
-def on_sides(keypoints: np.ndarray, valid: np.ndarray, have: tuple[str, ...], want) -> tuple[np.ndarray, np.ndarray]:
-    """A chunk's (n,S,...) keypoint arrays on another hand axis ``want`` (e.g. both sides for
-    a clip whose hands are estimated): the sides it lacks are zero / invalid."""
-    if want is None or tuple(want) == tuple(have):
+def on_sides(keypoints: np.ndarray, valid: np.ndarray, have, want) -> tuple[np.ndarray, np.ndarray]:
+    """A chunk's (n,S,...) keypoint arrays, on the hand axis ``have``, moved onto ``want``
+    (e.g. both sides for a clip whose hands are estimated): the sides it lacks are zero /
+    invalid. Either None: unchanged."""
+    if want is None or have is None or tuple(want) == tuple(have):
         return keypoints, valid
+    have = tuple(have)
     n = keypoints.shape[0]
     kp = np.zeros((n, len(want), *keypoints.shape[2:]), keypoints.dtype)
     ok = np.zeros((n, len(want), *valid.shape[2:]), bool)

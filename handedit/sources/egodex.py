@@ -38,7 +38,7 @@ import pydantic
 
 from handedit.camera import Intrinsics
 from handedit.keypoints import SIDES
-from handedit.sources.base import ClipChunk, ClipInfo, SourceError
+from handedit.sources.base import ClipChunk, ClipInfo, SourceError, take_clips
 from handedit.digests import file_sha256
 from handedit.sources.decode import VideoReader
 
@@ -144,17 +144,13 @@ class EgoDexTree(pydantic.BaseModel):
         if missing:
             raise SourceError(f"EgoDex root {root} has no task folder(s) {missing}; tasks there: "
                               f"{sorted(p.name for p in root.iterdir() if p.is_dir())}.")
-        left = self.max_clips
-        for task in tasks:
-            stems = {p.stem for p in (root / task).iterdir() if p.suffix in (".hdf5", ".mp4") and not p.name.startswith(".")}
-            specs = [EgoDexSpec(root=root, task=task, episode=s, frames=self.frames, resize=self.resize,
-                                min_confidence=self.min_confidence) for s in sorted(stems, key=_episode_key)]
-            if left is not None:
-                specs, left = specs[:left], left - min(left, len(specs))
-            if specs:
-                yield task, specs
-            if left == 0:
-                return
+        def listing():
+            for task in tasks:
+                stems = {p.stem for p in (root / task).iterdir() if p.suffix in (".hdf5", ".mp4") and not p.name.startswith(".")}
+                yield task, [EgoDexSpec(root=root, task=task, episode=s, frames=self.frames, resize=self.resize,
+                                        min_confidence=self.min_confidence) for s in sorted(stems, key=_episode_key)]
+
+        yield from take_clips(listing(), self.max_clips)
 
     def clips(self) -> list[EgoDexSpec]:
         return [s for _, group in self.groups() for s in group]

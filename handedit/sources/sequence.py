@@ -22,7 +22,7 @@ import pydantic
 from handedit.camera import Intrinsics
 from handedit.digests import file_sha256
 from handedit.images import read_rgb
-from handedit.sources.base import ClipChunk, ClipInfo, SourceError
+from handedit.sources.base import ClipChunk, ClipInfo, SourceError, take_clips
 
 
 @dataclass
@@ -146,14 +146,14 @@ def load_pickle(path: Path, what: str, fix: str):
         raise SourceError(f"{what} {path} could not be read ({type(exc).__name__}: {exc}); {fix}.") from None
 
 
-def load_mesh(path: Path, what: str, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+def load_mesh(path: Path, what: str) -> tuple[np.ndarray, np.ndarray]:
     import trimesh
 
     try:
         m = trimesh.load(path, process=False, force="mesh")
     except Exception as exc:  # noqa: BLE001
         raise SourceError(f"{what} {path} could not be read ({type(exc).__name__}: {exc}); download the object models.") from None
-    return np.asarray(m.vertices, float) * scale, np.asarray(m.faces, np.int64)
+    return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
 
 
 class ManoSpecBase(pydantic.BaseModel):
@@ -189,16 +189,9 @@ class ManoTreeBase(pydantic.BaseModel):
         raise NotImplementedError
 
     def groups(self):
-        left = self.max_clips
         common = {"mano_dir": self.mano_dir, "frames": self.frames, "resize": self.resize}
-        for name, wheres in self._groups():
-            specs = [self._spec(**common, **w) for w in wheres]
-            if left is not None:
-                specs, left = specs[:left], left - min(left, len(specs))
-            if specs:
-                yield name, specs
-            if left == 0:
-                return
+        yield from take_clips(((name, [self._spec(**common, **w) for w in wheres]) for name, wheres in self._groups()),
+                              self.max_clips)
 
     def clips(self) -> list:
         return [s for _, g in self.groups() for s in g]

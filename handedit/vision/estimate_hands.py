@@ -5,20 +5,23 @@ give each visible hand's 21 landmarks in pixels, its landmarks in metres around 
 (``world``), a presence score and a handedness probability. Three steps turn them into
 what the dataset adapters provide, camera-frame MANO-order joints per side:
 
-1. **Depth (PnP).** The world landmarks are metric but hand-centred. The camera-frame
-   hand is the rigid motion of them that best reprojects onto the 2-D landmarks with the
-   clip's intrinsics (``cv2.solvePnP``, SQPnP then Levenberg-Marquardt). Depth then
-   rests on the model's hand size: a hand 10 % larger than the model believes is placed
-   10 % too far (``bench/estimate_hands.py`` measures it where ground truth exists).
-   An ONNX plug-in (``handedit.models.hand_pose``: crop -> MANO-21 joints + weak-
-   perspective camera, HaMeR/WiLoR-style) can replace this step; detection, tracking
-   and handedness stay MediaPipe's.
+1. **Depth.** The 2-D landmarks fix each joint's ray; the depth along it is estimated.
+   ``bones`` (default): each joint on its ray at a typical adult bone length from its
+   parent, the wrist at the depth of the least foreshortened palm segment (``lift_bones``).
+   ``pnp``: the model's metric, hand-centred world landmarks moved rigidly to reproject
+   onto the 2-D ones (``cv2.solvePnP``, SQPnP then Levenberg-Marquardt). Both rest on a
+   hand size, so depth is the weak part (``bench/estimate_hands.py`` measures it where
+   ground truth exists; MediaPipe's world landmarks are nearly flat on egocentric views,
+   which is why ``bones`` is the default). An ONNX plug-in (``handedit.models.hand_pose``:
+   crop -> MANO-21 joints + weak-perspective camera, HaMeR/WiLoR-style) can replace this
+   step; detection, tracking and handedness stay MediaPipe's.
 2. **Sides.** A track is a hand followed from frame to frame by the landmark tracker.
    Each track takes the side its frames vote for (the sum of p_right - 0.5), so a flicker
    of the classifier never swaps a hand's side mid-track; when two tracks in one frame
    claim one side, the one with less evidence takes the other.
-3. **Smoothing.** A one-euro filter per track and coordinate (little lag when the hand
-   moves fast, strong smoothing when it is still); the raw keypoints are kept beside.
+3. **Smoothing.** A one-euro filter per side and coordinate, restarted after a frame
+   without that side (little lag when the hand moves fast, strong smoothing when it is
+   still); the raw keypoints are kept beside.
 
 QC per side and frame: not detected -> ``ABSENT`` (both sides ``NO_HAND_DETECTED`` when
 no hand is found at all); presence below ``min_presence`` -> ``LOW_HAND_CONFIDENCE``; bone
@@ -71,7 +74,7 @@ class EstimateHandsConfig(pydantic.BaseModel):
     min_detection: float = pydantic.Field(0.5, gt=0, lt=1, description="palm detection score")
     min_presence: float = pydantic.Field(0.5, gt=0, lt=1, description="landmark model's hand presence score")
     bone_ratio: float = pydantic.Field(1.8, gt=1, description="a bone more than this factor off a human hand's is implausible")
-    max_reprojection_px: float = pydantic.Field(12.0, gt=0, description="mean PnP reprojection error, px at 640 wide")
+    max_reprojection_px: float = pydantic.Field(12.0, gt=0, description="mean reprojection error of the 3-D hand, px at 640 wide")
     smooth: bool = True
     min_cutoff_hz: float = pydantic.Field(1.5, gt=0, description="one-euro: cutoff of a still hand")
     beta: float = pydantic.Field(8.0, ge=0, description="one-euro: cutoff growth per m/s of speed")
@@ -86,17 +89,19 @@ class EstimateHandsConfig(pydantic.BaseModel):
 
         return default_model_dir()
 
-    def model_digest(self) -> str:
-        """Content of the hand model files this config runs ("missing" when they are not there:
-        the stage then reports how to get them)."""
+    def model_digests(self) -> dict[str, str]:
+        """The hand model files this config runs, by content (``handedit.digests.model_digests``);
+        "missing" when they are not there (the stage then says how to get them)."""
         from handedit.digests import file_digest
         from handedit.models.mediapipe_hands import HandModelError, HandModelFiles
 
+        if self.mode == "never":
+            return {}
         try:
             files = HandModelFiles.in_dir(self.hand_model_dir(), self.variant)
         except HandModelError:
-            return "missing"
-        return "+".join(file_digest(p)[:16] for p in (files.palm, files.landmark))
+            return {"hand_models": "missing"}
+        return {"hand_models": "+".join(file_digest(p)[:16] for p in (files.palm, files.landmark))}
 
 
 @dataclass
@@ -263,6 +268,18 @@ def assign_sides(dets: list[_Det]) -> dict[int, int]:
     return side
 
 
+def judge(d: _Det, cfg: EstimateHandsConfig, max_reprojection_px: float) -> tuple[Reason, str]:
+    """One found hand's QC: (reason, detail; "" when OK)."""
+    if d.presence < cfg.min_presence:
+        return Reason.LOW_HAND_CONFIDENCE, f"hand presence {d.presence:.2f} < {cfg.min_presence}"
+    bad = implausible_bones(d.cam, cfg.bone_ratio)
+    if bad:
+        return Reason.IMPLAUSIBLE_HAND, f"bone lengths off a human hand's by more than x{cfg.bone_ratio} at joints {bad}"
+    if d.reproj > max_reprojection_px:
+        return Reason.IMPLAUSIBLE_HAND, f"3-D hand reprojects {d.reproj:.1f} px from its landmarks (> {max_reprojection_px:.1f})"
+    return Reason.OK, ""
+
+
 def estimate_hands(frames: Iterable[np.ndarray], n_frames: int, intr: Intrinsics, fps: float,
                    cfg: EstimateHandsConfig = EstimateHandsConfig(), detector=None, lifter=None) -> HandEstimate:
     """Estimate both sides' keypoints over a clip's frames (an iterable, read in order).
@@ -289,7 +306,6 @@ def estimate_hands(frames: Iterable[np.ndarray], n_frames: int, intr: Intrinsics
     if t != n_frames:
         raise ValueError(f"estimate_hands read {t} frames, expected {n_frames}")
     side = assign_sides(dets)
-    scale = intr.width / 640.0
     n = n_frames
     raw = np.zeros((n, S, N_JOINTS, 3))
     valid = np.zeros((n, S, N_JOINTS), bool)
@@ -304,27 +320,16 @@ def estimate_hands(frames: Iterable[np.ndarray], n_frames: int, intr: Intrinsics
         if status[d.frame, k] != Reason.ABSENT:  # a second hand on one side in one frame: keep the first
             continue
         if d.cam is None:
-            d.cam, d.reproj = (lift_pnp(d.xy, d.world, intr) if cfg.depth == "pnp"
-                               else lift_bones(d.xy, d.world, intr, cfg.hand_scale))
-        else:
-            d.reproj = float(np.linalg.norm(project(d.cam, intr) - d.xy, axis=1).mean())
+            d.cam = (lift_pnp(d.xy, d.world, intr) if cfg.depth == "pnp" else lift_bones(d.xy, d.world, intr, cfg.hand_scale))[0]
+        d.reproj = float(np.linalg.norm(project(d.cam, intr) - d.xy, axis=1).mean())
         raw[d.frame, k] = d.cam
         pr[d.frame, k], box[d.frame, k], reproj[d.frame, k] = d.p_right, d.box, d.reproj
         inside = (d.xy[:, 0] >= 0) & (d.xy[:, 0] < intr.width) & (d.xy[:, 1] >= 0) & (d.xy[:, 1] < intr.height)
         conf[d.frame, k] = np.where(inside, d.presence, 0.0)
-        bad = implausible_bones(d.cam, cfg.bone_ratio)
-        if d.presence < cfg.min_presence:
-            status[d.frame, k] = Reason.LOW_HAND_CONFIDENCE
-            details[(d.frame, k)] = f"hand presence {d.presence:.2f} < {cfg.min_presence}"
-        elif bad:
-            status[d.frame, k] = Reason.IMPLAUSIBLE_HAND
-            details[(d.frame, k)] = f"bone lengths off a human hand's by more than x{cfg.bone_ratio} at joints {bad}"
-        elif d.reproj > cfg.max_reprojection_px * scale:
-            status[d.frame, k] = Reason.IMPLAUSIBLE_HAND
-            details[(d.frame, k)] = f"3-D hand reprojects {d.reproj:.1f} px from its landmarks (> {cfg.max_reprojection_px * scale:.1f})"
-        else:
-            status[d.frame, k] = Reason.OK
-            valid[d.frame, k] = True
+        status[d.frame, k], why = judge(d, cfg, cfg.max_reprojection_px * intr.width / 640.0)
+        valid[d.frame, k] = status[d.frame, k] == Reason.OK
+        if why:
+            details[(d.frame, k)] = why
     nothing = (status == Reason.ABSENT).all(axis=1)
     status[nothing] = Reason.NO_HAND_DETECTED
     for i in np.flatnonzero(nothing):
