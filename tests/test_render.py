@@ -348,3 +348,62 @@ def test_jaka_joint_caps_are_blue_faces_of_its_grey_links(robots_dir, monkeypatc
         n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         n /= np.linalg.norm(n, axis=1, keepdims=True)
         assert np.median(np.abs(n).max(axis=1)) > 0.95  # flat faces square to an axis
+
+
+@pytest.mark.parametrize("emb_id", ["allegro", "xarm_ability"])
+def test_screen_box_render_equals_the_full_frame(robots_dir, monkeypatch, emb_id):
+    """Rendering only the robot's screen box (scissored clear, box read-back) gives the full
+    frame's pixels exactly; the boxes hold every robot pixel; a robot off screen is not drawn;
+    one partly behind the near plane falls back to the full frame."""
+    import handedit.render.renderer as renderer_mod
+    from handedit.render import embodiment_renderer
+
+    monkeypatch.setenv("HANDEDIT_ASSET_DIRS", str(robots_dir))
+    r = embodiment_renderer(emb_id, W, H)
+    q, T = scenario(r)
+    q2, T2 = scenario(r, seed=3)
+    away, near = T.copy(), T.copy()
+    away[:3, 3] += [5.0, 0.0, 0.0]  # far to the right of the view
+    near[2, 3] = 0.02  # the near plane cuts the robot
+    qs, Ts = np.stack([q, q2, q, q]), np.stack([T, T2, away, near])
+    boxed = r.render(qs, Ts, INTR)
+    monkeypatch.setattr(renderer_mod, "screen_box", lambda *a, **k: None)
+    full = r.render(qs, Ts, INTR)
+    np.testing.assert_array_equal(boxed.rgba, full.rgba)
+    np.testing.assert_array_equal(boxed.depth, full.depth)
+    assert boxed.mask[:2].sum() > 0.01 * W * H and not boxed.mask[2].any()
+    for i in range(2):
+        x, y, w, h = boxed.boxes[i]
+        assert 0 < w * h < W * H  # a real crop
+        outside = boxed.mask[i].copy()
+        outside[boxed.box(i)] = False
+        assert not outside.any()
+    assert tuple(boxed.boxes[3]) == (0, 0, W, H)
+
+
+def test_a_collected_renderer_leaves_the_current_context_alone(robots_dir):
+    """A renderer dropped without close() is deleted whenever the garbage collector runs,
+    possibly inside another renderer's frame: the other renderer's context stays current."""
+    import gc
+
+    from handedit.render.gl import make_offscreen
+
+    a = RobotRenderer(packaged_allegro(), W, H)
+    q, T = scenario(a)
+    before = a.render(q[None], T[None], INTR)
+    doomed = make_offscreen(W, H)
+    import ctypes
+
+    from OpenGL.EGL import eglGetCurrentContext
+
+    def current() -> int | None:
+        return ctypes.cast(eglGetCurrentContext(), ctypes.c_void_p).value
+
+    a._gl._platform.make_current()  # as inside a's frame
+    mine = current()
+    doomed.delete()
+    del doomed
+    gc.collect()
+    assert mine is not None and current() == mine
+    np.testing.assert_array_equal(a.render(q[None], T[None], INTR).rgba, before.rgba)
+    a.close()

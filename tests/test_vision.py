@@ -366,6 +366,104 @@ def test_configs_are_versioned():
         assert "VERSION" not in cfg.model_dump()
 
 
+def _depth_per_face(vertices, faces, T, intr):
+    """Reference z-buffer: every face tested on every pixel centre of its screen box."""
+    H, W = intr.height, intr.width
+    v = vertices @ T[:3, :3].T + T[:3, 3]
+    z = v[:, 2]
+    uv = np.stack([intr.fx * v[:, 0] / z + intr.cx, intr.fy * v[:, 1] / z + intr.cy], -1)
+    depth = np.full((H, W), np.inf)
+    ys, xs = np.mgrid[0:H, 0:W] + 0.5
+    for f in faces:
+        if (z[f] <= 1e-3).any():
+            continue
+        (ax, ay), (bx, by), (cx, cy) = uv[f]
+        area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+        if abs(area) < 1e-12:
+            continue
+        w0 = ((bx - xs) * (cy - ys) - (by - ys) * (cx - xs)) / area
+        w1 = ((cx - xs) * (ay - ys) - (cy - ys) * (ax - xs)) / area
+        w2 = 1.0 - w0 - w1
+        inside = (w0 >= -1e-9) & (w1 >= -1e-9) & (w2 >= -1e-9)
+        d = 1.0 / np.maximum(w0 / z[f[0]] + w1 / z[f[1]] + w2 / z[f[2]], 1e-12)
+        depth = np.where(inside, np.minimum(depth, d), depth)
+    depth[~np.isfinite(depth)] = 0.0
+    return depth.astype(np.float32)
+
+
+def test_object_depth_matches_a_per_face_reference():
+    """The vectorised rasterizer (row spans, all faces at once) against the plain z-buffer, on
+    thin sliver faces (a cylinder's), a box's big faces, a sphere, poses partly off screen."""
+    import trimesh
+
+    from handedit.camera import Intrinsics
+    from handedit.vision.object_depth import rasterize_depth
+
+    intr = Intrinsics(fx=90.0, fy=90.0, cx=41.0, cy=29.5, width=80, height=60)
+    rng = np.random.default_rng(0)
+    meshes = [trimesh.creation.cylinder(0.05, 0.3, 32), trimesh.creation.box((0.2, 0.1, 0.05)),
+              trimesh.creation.icosphere(2, 0.08)]
+    covered = 0
+    for mesh in meshes:
+        for _ in range(3):
+            T = trimesh.transformations.random_rotation_matrix(rng.random(3))
+            T[:3, 3] = [rng.normal() * 0.1, rng.normal() * 0.1, 0.3 + rng.random() * 0.3]
+            got = rasterize_depth(mesh.vertices, mesh.faces, T, intr)
+            want = _depth_per_face(np.asarray(mesh.vertices, float), np.asarray(mesh.faces), T, intr)
+            np.testing.assert_array_equal(got > 0, want > 0)
+            np.testing.assert_allclose(got, want, rtol=1e-6)
+            covered += int((got > 0).sum())
+    assert covered > 0.1 * 9 * 80 * 60
+
+
+def test_grow_is_the_disk_dilation():
+    """``masks.grow`` in the mask's box: exactly cv2's dilation up to EXACT_MAX, a Euclidean
+    ball beyond (the same pixels as an exact distance; cv2's ellipse holds it and a rim more)."""
+    from scipy.ndimage import distance_transform_edt
+
+    from handedit.vision.masks import EXACT_MAX, disk, grow
+
+    rng = np.random.default_rng(1)
+    m = np.zeros((90, 120), bool)
+    m[40:50, 30:45] = True
+    m[rng.integers(0, 90, 6), rng.integers(0, 120, 6)] = True
+    for r in (1, 3, EXACT_MAX):
+        np.testing.assert_array_equal(grow(m, r), cv2.dilate(m.astype(np.uint8), disk(r)).astype(bool))
+    for r in (EXACT_MAX + 1, 20):
+        g = grow(m, r)
+        np.testing.assert_array_equal(g, distance_transform_edt(~m) <= r)
+        ref = cv2.dilate(m.astype(np.uint8), disk(r)).astype(bool)
+        assert (g ^ ref).sum() < 0.05 * ref.sum() and not (g & ~ref).any()  # cv2's ellipse is a little wider
+    assert not grow(np.zeros((5, 5), bool), 3).any()
+
+
+def test_restore_median_of_seen_candidates_is_nanmedian():
+    from handedit.vision.restore_background import _median_seen
+
+    rng = np.random.default_rng(2)
+    C = rng.integers(0, 255, (7, 400, 3)).astype(np.float32)
+    V = rng.random((7, 400)) < 0.5
+    V[:3] = True  # the caller's case: at least 3 frames saw each pixel
+    want = np.nanmedian(np.where(V[..., None], C, np.nan), axis=0)
+    np.testing.assert_array_equal(_median_seen(C, V), want)
+
+
+def test_segment_upsample_in_the_support_box_is_the_full_frame_filter():
+    from handedit.vision.segment import _upsample
+
+    if not hasattr(cv2, "ximgproc"):
+        pytest.fail("opencv-contrib (cv2.ximgproc) is a dependency of the segmenter")
+    rng = np.random.default_rng(3)
+    guide = cv2.GaussianBlur(rng.integers(0, 255, (120, 160, 3)).astype(np.uint8), (0, 0), 2)
+    soft = np.zeros((60, 80), np.float32)
+    cv2.circle(soft, (30, 25), 9, 1.0, -1)
+    soft = cv2.GaussianBlur(soft, (0, 0), 1.5)
+    up = cv2.resize(soft, (160, 120), interpolation=cv2.INTER_LINEAR)
+    full = cv2.ximgproc.guidedFilter(guide, up, 4, (0.1 * 255.0) ** 2) >= 0.5
+    got = _upsample(soft, guide, 4, 0.1)
+    assert got.sum() > 500 and (got ^ full).sum() <= 2
+
+
 def test_object_depth_of_a_known_box():
     """A box facing the camera at a known distance: its depth is the near face's z, its
     silhouette the projected square (pixel centres at +0.5, the GL renderer's convention)."""

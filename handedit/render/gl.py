@@ -1,15 +1,19 @@
 """A pyrender OffscreenRenderer tuned for software GL (Mesa llvmpipe) and many contexts.
 
-pyrender 0.1.45 is used as is, with four instance-level adjustments that cut a 640x480 frame
+pyrender 0.1.45 is used as is, with six instance-level adjustments that cut a 640x480 frame
 from ~200 ms to well under 100 ms on llvmpipe without changing the silhouette:
 - single-sample framebuffer (pyrender hard-codes 4x MSAA; our alpha is binary anyway),
-- a cheaper Blinn-Phong shader with pyrender's uniforms (``shaders.py``),
+- a cheaper Blinn-Phong shader with pyrender's uniforms (``shaders.py``), each uniform sent
+  only when its value changes,
 - opaque meshes drawn front to back (pyrender sorts back to front, defeating early-z),
+- clear, resolve and read back only ``gl.region`` when it is set (the robot's screen box):
+  the full-frame read-back and its depth conversion were a third of a frame's cost,
 - EGL teardown that does not eglTerminate the process-wide display (which kills other contexts).
 """
 
 from __future__ import annotations
 
+import ctypes
 import os
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
@@ -28,7 +32,27 @@ class _RobotShaderCache(ShaderProgramCache):
         if vertex_shader == "mesh.vert" and fragment_shader == "mesh.frag" and defines and "NORMAL_LOC" in defines:
             d = shader_dir()
             vertex_shader, fragment_shader = str(d / "robot.vert"), str(d / "robot.frag")
-        return super().get_program(vertex_shader, fragment_shader, geometry_shader, defines)
+        program = super().get_program(vertex_shader, fragment_shader, geometry_shader, defines)
+        if not getattr(program, "_skips_repeats", False):
+            _skip_repeated_uniforms(program)
+        return program
+
+
+def _skip_repeated_uniforms(program) -> None:
+    """pyrender sends the camera's V, P and position before every primitive (a uniform costs
+    ~60 us in PyOpenGL): a value equal to the one the program already holds is not re-sent
+    (GL keeps uniform values in the program object, and only this wrapper writes them)."""
+    set_uniform, last = program.set_uniform, {}
+
+    def set_if_changed(name, value, unsigned=False):
+        v = np.array(value) if isinstance(value, (np.ndarray, list, tuple)) else value
+        prev = last.get(name)
+        if prev is not None and type(prev) is type(v) and (np.array_equal(prev, v) if isinstance(v, np.ndarray) else prev == v):
+            return
+        set_uniform(name, value, unsigned)
+        last[name] = v
+
+    program.set_uniform, program._skips_repeats = set_if_changed, True
 
 
 def _front_to_back(renderer):
@@ -52,12 +76,77 @@ def _single_sample(gl: pyrender.OffscreenRenderer) -> None:
     glBindRenderbuffer(GL_RENDERBUFFER, 0)
 
 
+def _region_reads(gl: pyrender.OffscreenRenderer) -> None:
+    """``gl.region = (x, y, w, h)`` (OpenCV pixels: top-left origin): the next renders clear and
+    return only that box (a scissor on the clear and the draws; the resolve blit and
+    ``glReadPixels`` of the box), the same pixels as the full frame's crop. None: full frame."""
+    from OpenGL.GL import (GL_COLOR_BUFFER_BIT, GL_DEPTH_BUFFER_BIT, GL_DEPTH_COMPONENT, GL_DRAW_FRAMEBUFFER, GL_FLOAT,
+                           GL_LINEAR, GL_NEAREST, GL_READ_FRAMEBUFFER, GL_RGBA, GL_SCISSOR_TEST, GL_UNSIGNED_BYTE,
+                           glBindFramebuffer, glBlitFramebuffer, glDisable, glEnable, glReadPixels, glScissor)
+
+    r = gl._renderer
+    gl.region = None
+    full_read, forward = r._read_main_framebuffer, r._forward_pass
+
+    def gl_box():
+        x, y, w, h = gl.region
+        return x, r._main_fb_dims[1] - (y + h), w, h  # GL rows count from the bottom
+
+    def forward_pass(scene, flags, seg_node_map=None):
+        if gl.region is None:
+            return forward(scene, flags, seg_node_map=seg_node_map)
+        glEnable(GL_SCISSOR_TEST)
+        glScissor(*gl_box())
+        try:
+            return forward(scene, flags, seg_node_map=seg_node_map)
+        finally:
+            glDisable(GL_SCISSOR_TEST)
+
+    def read(scene, flags):
+        if gl.region is None or not flags & pyrender.RenderFlags.RGBA:
+            return full_read(scene, flags)
+        x, y, w, h = gl_box()
+        glBindFramebuffer(GL_READ_FRAMEBUFFER, r._main_fb_ms)
+        glBindFramebuffer(GL_DRAW_FRAMEBUFFER, r._main_fb)
+        glBlitFramebuffer(x, y, x + w, y + h, x, y, x + w, y + h, GL_COLOR_BUFFER_BIT, GL_LINEAR)
+        glBlitFramebuffer(x, y, x + w, y + h, x, y, x + w, y + h, GL_DEPTH_BUFFER_BIT, GL_NEAREST)
+        glBindFramebuffer(GL_READ_FRAMEBUFFER, r._main_fb)
+        depth = np.flip(np.frombuffer(glReadPixels(x, y, w, h, GL_DEPTH_COMPONENT, GL_FLOAT), np.float32).reshape(h, w), 0)
+        inf = depth == 1.0  # pyrender's conversion of window depth to camera z, on the box only
+        depth = 2.0 * depth - 1.0
+        near, far = scene.main_camera_node.camera.znear, scene.main_camera_node.camera.zfar
+        depth[~inf] = (2.0 * near * far) / (far + near - depth[~inf] * (far - near))
+        depth[inf] = 0.0
+        color = np.flip(np.frombuffer(glReadPixels(x, y, w, h, GL_RGBA, GL_UNSIGNED_BYTE), np.uint8).reshape(h, w, 4), 0)
+        return color, depth
+
+    r._forward_pass, r._read_main_framebuffer = forward_pass, read
+
+
 def _keep_display_alive(gl: pyrender.OffscreenRenderer) -> None:
     """pyrender's EGL teardown calls eglTerminate on the process-wide display, which invalidates
-    every other renderer's context (EGL_BAD_DISPLAY). Destroy only our own context instead."""
+    every other renderer's context (EGL_BAD_DISPLAY). Destroy only our own context instead, and
+    give back the context that was current: a renderer dropped without ``close`` is deleted by
+    the garbage collector, which may run in the middle of another renderer's frame."""
     platform = gl._platform
     if not hasattr(platform, "_egl_display"):
         return
+    delete = gl.delete
+
+    def delete_keeping_current() -> None:
+        from OpenGL.EGL import EGL_DRAW, EGL_READ, eglGetCurrentContext, eglGetCurrentDisplay, eglGetCurrentSurface, eglMakeCurrent
+
+        def address(p) -> int | None:
+            return None if p is None else ctypes.cast(p, ctypes.c_void_p).value
+
+        ctx = eglGetCurrentContext()
+        current = (eglGetCurrentDisplay(), eglGetCurrentSurface(EGL_DRAW), eglGetCurrentSurface(EGL_READ), ctx)
+        other = address(ctx) not in (None, address(platform._egl_context))
+        delete()
+        if other:
+            eglMakeCurrent(*current)
+
+    gl.delete = delete_keeping_current
 
     def delete_context() -> None:
         from OpenGL.EGL import EGL_NO_CONTEXT, EGL_NO_SURFACE, eglDestroyContext, eglMakeCurrent
@@ -78,6 +167,7 @@ def make_offscreen(width: int, height: int, msaa: bool = False) -> pyrender.Offs
     gl._platform.make_current()
     gl._renderer._program_cache = _RobotShaderCache()
     _front_to_back(gl._renderer)
+    _region_reads(gl)
     if not msaa:
         _single_sample(gl)
     return gl

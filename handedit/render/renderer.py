@@ -37,6 +37,14 @@ LIGHTS_CV: tuple[tuple[tuple[float, float, float], float], ...] = (
 class RenderResult:
     rgba: np.ndarray  # (n,H,W,4) uint8; alpha 255 on robot pixels, RGB black where alpha is 0
     depth: np.ndarray  # (n,H,W) float32 metres along the camera z axis; 0 where no robot
+    boxes: np.ndarray | None = None  # (n,4) int (x, y, w, h): every robot pixel lies inside; None: anywhere
+
+    def box(self, i: int) -> tuple[slice, slice]:
+        """Frame i's box as (rows, columns) slices."""
+        if self.boxes is None:
+            return slice(None), slice(None)
+        x, y, w, h = (int(v) for v in self.boxes[i])
+        return slice(y, y + h), slice(x, x + w)
 
     @property
     def mask(self) -> np.ndarray:
@@ -76,6 +84,38 @@ def _bind_lighting_once_per_frame(gl: pyrender.OffscreenRenderer) -> None:
         return forward(scene, flags, seg_node_map=seg_node_map)
 
     renderer._bind_lighting, renderer._forward_pass = bind_lighting, forward_pass
+
+
+def _hull_points(model: RobotModel, links: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """(link index (m,), link-frame points (m,3)): each part's convex-hull vertices, whose
+    projection bounds the part's (a segment in front of the camera projects to a segment)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    index, points = [], []
+    for p in model.parts:
+        v = np.asarray(p.vertices, np.float64)
+        try:
+            v = v[ConvexHull(v).vertices] if len(v) > 64 else v
+        except QhullError:  # flat or degenerate: every vertex
+            pass
+        index.append(np.full(len(v), links.index(p.link)))
+        points.append(v)
+    return np.concatenate(index), np.concatenate(points)
+
+
+def screen_box(points: np.ndarray, camera_from_link: np.ndarray, link: np.ndarray, intr: Intrinsics,
+               margin: int = 2) -> tuple[int, int, int, int] | None:
+    """(x, y, w, h) pixel box holding every pixel the points' hull can cover, clipped to the
+    image (w or h 0: off screen); None (render the full frame) when a point is not in front
+    of the near plane, where the projection no longer bounds the clipped geometry."""
+    T = camera_from_link[link]
+    p = np.einsum("mij,mj->mi", T[:, :3, :3], points) + T[:, :3, 3]
+    if (p[:, 2] <= Z_NEAR).any():
+        return None
+    u, v = intr.fx * p[:, 0] / p[:, 2] + intr.cx, intr.fy * p[:, 1] / p[:, 2] + intr.cy
+    x0, x1 = max(int(np.floor(u.min())) - margin, 0), min(int(np.ceil(u.max())) + margin, intr.width)
+    y0, y1 = max(int(np.floor(v.min())) - margin, 0), min(int(np.ceil(v.max())) + margin, intr.height)
+    return x0, y0, max(x1 - x0, 0), max(y1 - y0, 0)
 
 
 class RobotRenderer:
@@ -137,6 +177,7 @@ class RobotRenderer:
         self.scene.add(self._camera, pose=np.eye(4))
         self._gl = make_offscreen(self.width, self.height)
         _bind_lighting_once_per_frame(self._gl)
+        self._hull_link, self._hull_points = _hull_points(self.model, list(self._link_nodes))
 
     @property
     def n_faces(self) -> int:
@@ -188,14 +229,24 @@ class RobotRenderer:
 
         rgba = np.zeros((n, self.height, self.width, 4), np.uint8)
         depth = np.zeros((n, self.height, self.width), np.float32)
+        boxes = np.zeros((n, 4), np.int64)
         for i in range(n):
+            Ts = self.link_transforms(qpos[i])
+            box = screen_box(self._hull_points, np.stack([root_pose[i] @ Ts[link] for link in self._link_nodes]),
+                             self._hull_link, intrinsics)
+            boxes[i] = box or (0, 0, self.width, self.height)
+            if box is not None and (box[2] == 0 or box[3] == 0):
+                continue  # entirely off screen
             gl_from_root = CV_TO_GL @ root_pose[i]
-            for link, T in self.link_transforms(qpos[i]).items():
+            for link, T in Ts.items():
                 self.scene.set_pose(self._link_nodes[link], gl_from_root @ T)
             # Single-sample rendering onto a (0,0,0,0) background with opaque shading: the RGBA
             # read-back already is black/transparent off the robot and alpha 255 on it.
-            rgba[i], depth[i] = self._gl.render(self.scene, flags=pyrender.RenderFlags.RGBA)
-        return RenderResult(rgba=rgba, depth=depth)
+            self._gl.region = box
+            c, d = self._gl.render(self.scene, flags=pyrender.RenderFlags.RGBA)
+            x, y, w, h = boxes[i]
+            rgba[i, y:y + h, x:x + w], depth[i, y:y + h, x:x + w] = c, d
+        return RenderResult(rgba=rgba, depth=depth, boxes=boxes)
 
     def close(self) -> None:
         """Free the GL context (from the creating thread)."""

@@ -56,12 +56,13 @@ def render_stage(embodiment_id: str, qpos: np.ndarray, root_pose: np.ndarray, re
             continue
         out = render_embodiment(embodiment_id, qpos[idx, k], root_pose[idx, k], intr, decimate=cfg.decimate,
                                 materials=cfg.materials, side=side)
-        d = out.depth
-        mine = (d > 0) & ((depth[idx] <= 0) | (d < depth[idx]))
-        for j, i in enumerate(idx):
-            m = mine[j]
-            rgba[i][m], depth[i][m], side_of[i][m] = out.rgba[j][m], d[j][m], k + 1
-        visible = (out.rgba[..., 3] > 0).reshape(len(idx), -1).sum(axis=1)
+        visible = np.zeros(len(idx), np.int64)
+        for j, i in enumerate(idx):  # inside the render's box: nothing of this side lies outside it
+            box = out.box(j)
+            d, dd = out.depth[j][box], depth[i][box]
+            m = (d > 0) & ((dd <= 0) | (d < dd))
+            rgba[i][box][m], dd[m], side_of[i][box][m] = out.rgba[j][box][m], d[m], k + 1
+            visible[j] = np.count_nonzero(out.rgba[j][box][..., 3])
         hs[idx, k] = np.where(visible >= cfg.min_visible_pixels, Reason.OK, Reason.EMPTY_RENDER)
     method = f"pyrender:egl{'' if cfg.decimate is None else f':decimate={cfg.decimate}'}"
     return RenderStageResult(rgba, depth, side_of, hs, per_frame(hs), method)

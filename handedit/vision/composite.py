@@ -31,6 +31,8 @@ import pydantic
 from handedit.keypoints import N_JOINTS, PARENT, WRIST
 from handedit.reasons import STATUS_DTYPE, Reason, per_frame
 from handedit.metrics.similarity import bbox
+from handedit.vision.masks import disk, grow
+from handedit.vision.skin import colour_loglik
 
 
 class CompositeConfig(pydantic.BaseModel):
@@ -96,18 +98,6 @@ def occlusion_mask(
     return occ & (~has_od & cfg.occluder_in_front_without_depth | has_od & ((rd <= 0) | (od < rd - cfg.depth_tolerance)))
 
 
-def _disk(r: float) -> np.ndarray:
-    r = max(1, int(round(r)))
-    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-
-
-def _loglik(x: np.ndarray, px: np.ndarray) -> np.ndarray:
-    mu = px.mean(0)
-    cov = np.cov(px.T) + np.eye(3) * 16.0
-    d = x - mu
-    return -0.5 * np.einsum("...i,ij,...j->...", d, np.linalg.inv(cov), d) - 0.5 * np.log(np.linalg.det(cov))
-
-
 def _bone_samples(pts: np.ndarray, valid: np.ndarray, per_bone: int = 8) -> np.ndarray:
     """(m,2) points along the finger bones (joints 1-20 and their parents)."""
     out = []
@@ -135,7 +125,7 @@ def human_residue(image: np.ndarray, source: np.ndarray, human: np.ndarray, robo
     r_out, r_in = max(1, int(round(0.5 * scale))), max(1, int(round(0.15 * scale)))
     ys, xs = bbox(human, r_out + 1)  # every neighbourhood below stays inside it
     h8 = human[ys, xs].astype(np.uint8)
-    grown_w = cv2.dilate(h8, _disk(2)).astype(bool)
+    grown_w = cv2.dilate(h8, disk(2)).astype(bool)
     grown = np.zeros((H, W), bool)
     grown[ys, xs] = grown_w
     on_hand = q[grown[q[:, 1], q[:, 0]]]
@@ -157,7 +147,7 @@ def human_residue(image: np.ndarray, source: np.ndarray, human: np.ndarray, robo
     if not len(out):
         return 0.0
     x = ycrcb(image[out[:, 1], out[:, 0]])
-    hand_like = _loglik(x, hand_px) > _loglik(x, scene_px)
+    hand_like = colour_loglik(x, hand_px, 16.0) > colour_loglik(x, scene_px, 16.0)
     return float(hand_like.sum() / len(q))
 
 
@@ -207,17 +197,21 @@ def composite(
             for k in np.flatnonzero(~replace[i]):
                 keep |= human_mask[i, k]
             if keep.any():
-                keep = cv2.dilate(keep.astype(np.uint8), _disk(cfg.paste_dilate_px)).astype(bool) if cfg.paste_dilate_px else keep
+                keep = grow(keep, cfg.paste_dilate_px) if cfg.paste_dilate_px else keep
                 bg = bg.copy()
                 bg[keep] = source[i][keep]
-        drawn = np.isin(side_of[i], np.flatnonzero(replace[i]) + 1) & (rgba[i, ..., 3] > 0)
-        img = bg.copy()  # exactly the background wherever no robot contributes
+        img = image[i]
+        img[...] = bg  # exactly the background wherever no robot contributes
         visible = np.zeros((H, W), bool)
-        # the robot's box, grown by the feather's reach (the radius of cv2's float Gaussian kernel), is all that changes
-        win = bbox(drawn, max(1, (int(round(cfg.feather_px * 8 + 1)) | 1) // 2))
+        n_visible = np.zeros(S, np.int64)
+        # every rendered pixel's box, grown by the feather's reach (the radius of cv2's float
+        # Gaussian kernel), is all that changes: the drawn sides' pixels are a subset
+        win = bbox(rgba[i, ..., 3] > 0, max(1, (int(round(cfg.feather_px * 8 + 1)) | 1) // 2))
         if win is not None:
             ys, xs = win
-            a = np.where(drawn[ys, xs], rgba[i, ys, xs, 3].astype(np.float32) / 255.0, 0.0).astype(np.float32)
+            alpha, side = rgba[i, ys, xs, 3], side_of[i][ys, xs]
+            drawn = np.isin(side, np.flatnonzero(replace[i]) + 1) & (alpha > 0)
+            a = np.where(drawn, alpha.astype(np.float32) / 255.0, 0.0).astype(np.float32)
             occ = occlusion_mask(
                 depth[i][ys, xs], a,
                 None if occluder_mask is None else occluder_mask[i][ys, xs],
@@ -225,7 +219,11 @@ def composite(
                 cfg,
             )
             vis = np.where(occ, 0.0, a).astype(np.float32)
-            visible[ys, xs] = vis >= 0.5
+            seen = vis >= 0.5
+            visible[ys, xs] = seen
+            for k in range(S):
+                robot_mask[i, k, ys, xs] = mine = seen & (side == k + 1)
+                n_visible[k] = np.count_nonzero(mine)
             soft = vis * cv2.GaussianBlur(vis, (0, 0), cfg.feather_px) if cfg.feather_px > 0 else vis
             fg = rgba[i, ys, xs, :3].astype(np.float32)
             if cfg.premultiplied:  # un-premultiply so the feathered alpha applies to true colour
@@ -236,11 +234,8 @@ def composite(
             keep_bg = soft <= 0  # incl. occluded pixels
             patch[keep_bg] = b[keep_bg]
             img[ys, xs] = patch
-        for k in range(S):
-            robot_mask[i, k] = visible & (side_of[i] == k + 1)
-        image[i] = img
         for k in np.flatnonzero(replace[i]):
-            if int(robot_mask[i, k].sum()) < cfg.min_visible_px:
+            if n_visible[k] < cfg.min_visible_px:
                 hs[i, k] = Reason.EMPTY_RENDER
             elif human_mask is not None and source is not None and keypoints_2d is not None:
                 residue[i, k] = human_residue(img, source[i], human_mask[i, k], visible, keypoints_2d[i, k], keypoints_valid[i, k])

@@ -21,12 +21,23 @@ import numpy as np
 from handedit.camera import Intrinsics
 
 Z_NEAR = 1e-3  # metres: faces with a vertex closer than this are skipped
+_EPS = 1e-5  # pixels
+
+
+def _runs(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(owner, k) for ``counts[i]`` items per owner i: owner index and 0-based rank within it."""
+    owner = np.repeat(np.arange(len(counts)), counts)
+    return owner, np.arange(len(owner)) - np.repeat(np.cumsum(counts) - counts, counts)
 
 
 def rasterize_depth(vertices: np.ndarray, faces: np.ndarray, camera_from_object: np.ndarray, intr: Intrinsics) -> np.ndarray:
-    """(H,W) float32 camera-z depth in metres of the nearest object surface; 0 = no object."""
+    """(H,W) float32 camera-z depth in metres of the nearest object surface; 0 = no object.
+
+    Vectorised over faces (a Python loop per face cost ~30 ms per frame, per embodiment):
+    each face's rows are cut to the span its edges cross, every
+    candidate pixel of every face is tested with the barycentric inside test at its centre,
+    and ``np.minimum.at`` keeps the nearest surface."""
     H, W = intr.height, intr.width
-    depth = np.full((H, W), np.inf, np.float64)
     T = np.asarray(camera_from_object, np.float64)
     if not np.isfinite(T).all():
         return np.zeros((H, W), np.float32)
@@ -34,32 +45,50 @@ def rasterize_depth(vertices: np.ndarray, faces: np.ndarray, camera_from_object:
     z = v[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         uv = np.stack([intr.fx * v[:, 0] / z + intr.cx, intr.fy * v[:, 1] / z + intr.cy], -1)
-    for f in np.asarray(faces, np.int64):
-        if (z[f] <= Z_NEAR).any():
-            continue
-        p = uv[f]
-        x0, y0 = np.floor(p.min(0) - 0.5).astype(int)
-        x1, y1 = np.ceil(p.max(0)).astype(int)
-        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, W - 1), min(y1, H - 1)
-        if x0 > x1 or y0 > y1:
-            continue
-        (ax, ay), (bx, by), (cx, cy) = p
-        area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
-        if abs(area) < 1e-12:
-            continue
-        ys, xs = np.mgrid[y0:y1 + 1, x0:x1 + 1].astype(np.float64) + 0.5
-        w0 = ((bx - xs) * (cy - ys) - (by - ys) * (cx - xs)) / area
-        w1 = ((cx - xs) * (ay - ys) - (cy - ys) * (ax - xs)) / area
-        w2 = 1.0 - w0 - w1
-        inside = (w0 >= -1e-9) & (w1 >= -1e-9) & (w2 >= -1e-9)
-        if not inside.any():
-            continue
-        inv_z = w0 / z[f[0]] + w1 / z[f[1]] + w2 / z[f[2]]
-        d = np.where(inside, 1.0 / np.maximum(inv_z, 1e-12), np.inf)
-        sub = depth[y0:y1 + 1, x0:x1 + 1]
-        np.minimum(sub, d, out=sub)
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    f = f[(z[f] > Z_NEAR).all(1)]
+    p = uv[f]  # (F,3,2) screen corners
+    lo, hi = np.floor(p.min(1) - 0.5).astype(np.int64), np.ceil(p.max(1)).astype(np.int64)
+    x0, y0 = np.maximum(lo[:, 0], 0), np.maximum(lo[:, 1], 0)
+    x1, y1 = np.minimum(hi[:, 0], W - 1), np.minimum(hi[:, 1], H - 1)
+    (ax, ay), (bx, by), (cx, cy) = p[:, 0].T, p[:, 1].T, p[:, 2].T
+    area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+    keep = (x0 <= x1) & (y0 <= y1) & (np.abs(area) >= 1e-12)
+    f, p, x0, y0, x1, y1, area = f[keep], p[keep], x0[keep], y0[keep], x1[keep], y1[keep], area[keep]
+    # rows: the x range where the row's centre line crosses the face's edges (EPS px wider
+    # than exact, far more than the inside test's 1e-9 barycentric tolerance can reach)
+    face, k = _runs(y1 - y0 + 1)
+    yr = y0[face] + k
+    yc = yr + 0.5
+    xl, xr = np.full(len(face), np.inf), np.full(len(face), -np.inf)
+    for i, j in ((0, 1), (1, 2), (2, 0)):
+        (px, py), (qx, qy) = p[face, i].T, p[face, j].T
+        on = (np.minimum(py, qy) - _EPS <= yc) & (yc <= np.maximum(py, qy) + _EPS)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.clip((yc - py) / (qy - py), 0.0, 1.0)
+        x = np.where(qy != py, px + t * (qx - px), px)
+        flat = qy == py  # a horizontal edge on the centre line: both its ends
+        xl = np.where(on, np.minimum(xl, np.where(flat, np.minimum(px, qx), x)), xl)
+        xr = np.where(on, np.maximum(xr, np.where(flat, np.maximum(px, qx), x)), xr)
+    crossed = np.isfinite(xl)
+    xl, xr = np.where(crossed, xl, 0.0), np.where(crossed, xr, -1.0)
+    sl = np.maximum(np.ceil(xl - 0.5 - _EPS), x0[face]).astype(np.int64)  # pixel centres xi + 0.5 in [xl, xr]
+    sr = np.minimum(np.floor(xr - 0.5 + _EPS), x1[face]).astype(np.int64)
+    row, k = _runs(np.maximum(sr - sl + 1, 0))
+    face, xi, yi = face[row], sl[row] + k, yr[row]
+    xs, ys = xi + 0.5, yi + 0.5
+    # the barycentric inside test and perspective-correct depth at each candidate's centre
+    q = np.concatenate([p.reshape(-1, 6), area[:, None], 1.0 / z[f]], 1)[face]
+    ax, ay, bx, by, cx, cy, A = q[:, 0], q[:, 1], q[:, 2], q[:, 3], q[:, 4], q[:, 5], q[:, 6]
+    w0 = ((bx - xs) * (cy - ys) - (by - ys) * (cx - xs)) / A
+    w1 = ((cx - xs) * (ay - ys) - (cy - ys) * (ax - xs)) / A
+    w2 = 1.0 - w0 - w1
+    inside = (w0 >= -1e-9) & (w1 >= -1e-9) & (w2 >= -1e-9)
+    inv_z = w0 * q[:, 7] + w1 * q[:, 8] + w2 * q[:, 9]
+    depth = np.full(H * W, np.inf, np.float64)
+    np.minimum.at(depth, (yi * W + xi)[inside], 1.0 / np.maximum(inv_z[inside], 1e-12))
     depth[~np.isfinite(depth)] = 0.0
-    return depth.astype(np.float32)
+    return depth.reshape(H, W).astype(np.float32)
 
 
 def object_depth(vertices: np.ndarray, faces: np.ndarray, camera_from_object: np.ndarray, intr: Intrinsics) -> np.ndarray:

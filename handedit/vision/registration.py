@@ -44,7 +44,7 @@ import pydantic
 from handedit.camera import Intrinsics, project
 from handedit.keypoints import N_JOINTS, PARENT, WRIST
 from handedit.reasons import STATUS_DTYPE, Reason
-from handedit.vision.skin import to_ycrcb
+from handedit.vision.skin import colour_loglik, to_ycrcb
 
 _PALM = (WRIST, 1, 5, 9, 13, 17)
 
@@ -105,19 +105,11 @@ def _template(shape: tuple[int, int], pts: np.ndarray, valid: np.ndarray, width:
     return m.astype(bool)
 
 
-def _gauss_loglik(x: np.ndarray, px: np.ndarray) -> np.ndarray:
-    mu = px.mean(0)
-    cov = np.cov(px.T) + np.eye(3) * 16.0
-    d = x - mu
-    ic = np.linalg.inv(cov)
-    return -0.5 * np.einsum("...i,ij,...j->...", d, ic, d) - 0.5 * np.log(np.linalg.det(cov))
-
-
 def _hand_prob(ycc: np.ndarray, fg: np.ndarray, bg: np.ndarray) -> np.ndarray | None:
     if fg.sum() < 30 or bg.sum() < 30:
         return None
     x = ycc.astype(np.float32)
-    llr = _gauss_loglik(x, x[fg]) - _gauss_loglik(x, x[bg])
+    llr = colour_loglik(x, x[fg], 16.0) - colour_loglik(x, x[bg], 16.0)
     return (1.0 / (1.0 + np.exp(-np.clip(llr, -20, 20)))).astype(np.float32)
 
 

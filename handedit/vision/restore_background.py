@@ -30,11 +30,13 @@ import numpy as np
 import pydantic
 
 from handedit.reasons import STATUS_DTYPE, Reason
+from handedit.metrics.similarity import bbox
+from handedit.vision.masks import grow
 from handedit.vision.skin import prior_rule, to_ycrcb
 
 
 class RestoreConfig(pydantic.BaseModel):
-    VERSION: ClassVar[int] = 2
+    VERSION: ClassVar[int] = 3
     model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
 
     method: Literal["classical", "onnx"] = "classical"
@@ -70,14 +72,12 @@ class RestoreResult:
 
 
 def _dilate(mask: np.ndarray, px: int) -> np.ndarray:
-    if px <= 0:
-        return mask.astype(bool)
-    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * px + 1, 2 * px + 1))
-    return cv2.dilate(mask.astype(np.uint8), k).astype(bool)
+    return grow(mask, px) if px > 0 else mask.astype(bool)
 
 
 class _Features:
-    """ORB features per frame on its visible background, computed once."""
+    """ORB features per frame on its visible background, and the homographies between
+    frames, each computed once (the ghosting check reuses the propagation's)."""
 
     def __init__(self, frames: np.ndarray, holes: np.ndarray, max_side: int):
         self.frames, self.holes = frames, holes
@@ -85,6 +85,7 @@ class _Features:
         self.s = min(1.0, max_side / max(h, w))
         self.orb = cv2.ORB_create(nfeatures=2000, edgeThreshold=15, patchSize=15, fastThreshold=7)
         self._cache: dict[int, tuple] = {}
+        self.homographies: dict[tuple[int, int], np.ndarray | None] = {}
 
     def get(self, i: int) -> tuple:
         if i not in self._cache:
@@ -102,6 +103,12 @@ class _Features:
 
 def _homography(feats: _Features, j: int, t: int, cfg: RestoreConfig) -> np.ndarray | None:
     """3x3 taking frame j's pixels onto frame t's, or None when the fit is not trusted."""
+    if (j, t) not in feats.homographies:
+        feats.homographies[j, t] = _fit_homography(feats, j, t, cfg)
+    return feats.homographies[j, t]
+
+
+def _fit_homography(feats: _Features, j: int, t: int, cfg: RestoreConfig) -> np.ndarray | None:
     pj, dj = feats.get(j)
     pt, dt = feats.get(t)
     if dj is None or dt is None or len(pj) < cfg.min_inliers or len(pt) < cfg.min_inliers:
@@ -129,7 +136,26 @@ def _sources(t: int, m: int, cfg: RestoreConfig) -> list[int]:
     return sorted(cand, key=lambda j: (abs(j - t), j))
 
 
+def _median_seen(C: np.ndarray, V: np.ndarray) -> np.ndarray:
+    """(P,3) per-pixel median of the candidates (k,P,3) that saw the pixel (V (k,P)); the
+    value ``np.nanmedian`` gives with the others NaN, without its masked-array path."""
+    s = np.sort(np.where(V[..., None], C, np.inf), axis=0)  # unseen sort last
+    c = V.sum(0)[None, :, None]
+    lo = np.take_along_axis(s, (c - 1) // 2, 0)[0]
+    hi = np.take_along_axis(s, c // 2, 0)[0]
+    return (lo + hi) / 2
+
+
 def _inpaint(img: np.ndarray, hole: np.ndarray, cfg: RestoreConfig) -> np.ndarray:
+    if cfg.inpaint in ("telea", "ns"):  # local methods: the hole's box grown past their radius is exact
+        win = bbox(hole, cfg.inpaint_radius + 2)
+        res = img.copy()
+        res[win] = _inpaint_full(np.ascontiguousarray(img[win]), np.ascontiguousarray(hole[win]), cfg)
+        return res
+    return _inpaint_full(img, hole, cfg)
+
+
+def _inpaint_full(img: np.ndarray, hole: np.ndarray, cfg: RestoreConfig) -> np.ndarray:
     bgr = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
     m8 = hole.astype(np.uint8) * 255
     out = None
@@ -252,18 +278,18 @@ def restore_background(
                 Hm = np.eye(3)  # textureless or static: identity, if the photometric check agrees
             warped = cv2.warpPerspective(frames[j], Hm, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
             seen = cv2.warpPerspective((~holes[j]).astype(np.uint8) & ones, Hm, (W, H), flags=cv2.INTER_NEAREST) > 0
-            shared = seen & ~hole
-            if shared.sum() < 100:
+            shared = seen[::2, ::2] & ~hole[::2, ::2]  # every other pixel: the median needs no more
+            if shared.sum() < 25:
                 continue
-            gw = cv2.cvtColor(warped, cv2.COLOR_RGB2GRAY).astype(np.float32)
-            if float(np.median(np.abs(gw[shared] - grey(int(t))[shared]))) > cfg.max_align_error:
+            gw = cv2.cvtColor(warped[::2, ::2], cv2.COLOR_RGB2GRAY).astype(np.float32)
+            if float(np.median(np.abs(gw[shared] - grey(int(t))[::2, ::2][shared]))) > cfg.max_align_error:
                 continue  # misaligned, lighting jump or moving scene: would ghost
             vals = warped[hy, hx].astype(np.float32)
             if cfg.gain_compensation:
-                near = ring & seen
-                if near.sum() >= 50:
-                    gain = img[near].astype(np.float32).mean(0) / np.maximum(warped[near].astype(np.float32).mean(0), 1.0)
-                    vals *= np.clip(gain, 0.8, 1.25)
+                near = (ring & seen).view(np.uint8)
+                if cv2.countNonZero(near) >= 50:  # masked means (cv2: no gathers of the ring's pixels)
+                    gain = np.array(cv2.mean(img, near)[:3]) / np.maximum(cv2.mean(warped, near)[:3], 1.0)
+                    vals *= np.clip(gain, 0.8, 1.25).astype(np.float32)
             cands.append(vals)
             valids.append(seen[hy, hx])
         filled = np.zeros(len(hy), bool)
@@ -276,8 +302,7 @@ def restore_background(
             val = C[first, np.arange(len(hy))]
             many = cnt >= 3
             if many.any():
-                Cm = np.where(V[:, many, None], C[:, many], np.nan)
-                val[many] = np.nanmedian(Cm, axis=0)
+                val[many] = _median_seen(C[:, many], V[:, many])
             img[hy[filled], hx[filled]] = np.clip(np.round(val[filled]), 0, 255).astype(np.uint8)
         filled_frac[k] = float(filled.mean())
         rest = np.zeros((H, W), bool)

@@ -48,15 +48,17 @@ import numpy as np
 import pydantic
 
 from handedit.keypoints import MCPS, N_JOINTS, PARENT, WRIST
+from handedit.metrics.similarity import bbox
+from handedit.vision.masks import disk, grow
 from handedit.reasons import STATUS_DTYPE, Reason, per_frame
-from handedit.vision.skin import SkinModel, prior_rule, to_ycrcb
+from handedit.vision.skin import SkinModel, colour_loglik, prior_rule, to_ycrcb
 
 _TIP_JOINTS = frozenset((4, 8, 12, 16, 20))
 _UNKNOWN_STABILITY = 0.75  # stability term for a frame without usable neighbours
 
 
 class SegmentConfig(pydantic.BaseModel):
-    VERSION: ClassVar[int] = 2
+    VERSION: ClassVar[int] = 3
     model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
 
     method: Literal["classical", "onnx"] = "classical"
@@ -157,11 +159,6 @@ def _draw_skeleton(shape: tuple[int, int], pts: np.ndarray, valid: np.ndarray, t
     return m.astype(bool)
 
 
-def _disk(r: float) -> np.ndarray:
-    r = max(1, int(round(r)))
-    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-
-
 def _half_plane(shape: tuple[int, int], origin: np.ndarray, direction: np.ndarray, offset: float) -> np.ndarray:
     """Pixels with (p - origin) . direction <= offset (the distal side of the wrist line)."""
     h, w = shape
@@ -224,19 +221,12 @@ def _handlike(ycc: np.ndarray, sure: np.ndarray, hand_roi: np.ndarray, s: float)
     pixels around the hand's region: a skin-coloured table passes a chroma test but
     usually differs in brightness or saturation, and this test sees that.
     """
-    ring = cv2.dilate(hand_roi.astype(np.uint8), _disk(0.5 * s)).astype(bool) & ~hand_roi
+    ring = grow(hand_roi, 0.5 * s) & ~hand_roi
     if sure.sum() < 20 or ring.sum() < 20:
         return None
     x = ycc.astype(np.float32)
 
-    def loglik(px: np.ndarray) -> np.ndarray:
-        mu = px.mean(0)
-        cov = np.cov(px.T) + np.eye(3) * 9.0
-        d = x - mu
-        ic = np.linalg.inv(cov).astype(np.float32)
-        return -0.5 * np.einsum("...i,ij,...j->...", d, ic, d) - 0.5 * np.log(np.linalg.det(cov))
-
-    return loglik(x[sure]) > loglik(x[ring])
+    return colour_loglik(x, x[sure], 9.0, np.float32) > colour_loglik(x, x[ring], 9.0, np.float32)
 
 
 def _arm_direction(handlike: np.ndarray | None, kp: _KpFrame, cfg: SegmentConfig) -> np.ndarray | None:
@@ -294,7 +284,7 @@ def _segment_kp(bgr: np.ndarray, ycc: np.ndarray, prob: np.ndarray, kp: _KpFrame
     shape = prob.shape
     s = kp.scale
     sure = _draw_skeleton(shape, kp.pts, kp.valid, int(round(0.08 * s)), tip_frac=0.7)
-    sure = cv2.erode(sure.astype(np.uint8), _disk(0.04 * s)).astype(bool) | _draw_skeleton(
+    sure = cv2.erode(sure.astype(np.uint8), disk(0.04 * s)).astype(bool) | _draw_skeleton(
         shape, kp.pts, kp.valid, 1, tip_frac=0.7
     )
     # Keypoints of fingers wrapped behind a grasped object project onto the object: seeding
@@ -304,7 +294,7 @@ def _segment_kp(bgr: np.ndarray, ycc: np.ndarray, prob: np.ndarray, kp: _KpFrame
     if (sure & skin_seed).sum() >= 0.2 * sure.sum():
         sure &= skin_seed
     likely = _draw_skeleton(shape, kp.pts, kp.valid, int(round(0.3 * s)), tip_frac=1.0)
-    roi = cv2.dilate(likely.astype(np.uint8), _disk(cfg.roi_margin * s)).astype(bool)
+    roi = grow(likely, cfg.roi_margin * s)
     corridor = np.zeros(shape, np.uint8)
     handlike = _handlike(ycc, sure, roi, s)
     band = _arm_corridor(shape, kp, cfg)
@@ -314,7 +304,7 @@ def _segment_kp(bgr: np.ndarray, ycc: np.ndarray, prob: np.ndarray, kp: _KpFrame
     elif arm_dir is not None:
         far = kp.pts[WRIST] + arm_dir * float(shape[0] + shape[1])
         cv2.line(corridor, _ipt(kp.pts[WRIST]), _ipt(far), 1, max(2, int(round(cfg.forearm_width * s))))
-        roi |= cv2.dilate(corridor, _disk(0.3 * s)).astype(bool)
+        roi |= grow(corridor.astype(bool), 0.3 * s)
 
     init = np.full(shape, cv2.GC_BGD, np.uint8)
     init[roi] = cv2.GC_PR_BGD
@@ -333,13 +323,13 @@ def _segment_kp(bgr: np.ndarray, ycc: np.ndarray, prob: np.ndarray, kp: _KpFrame
         centre = np.zeros(shape, np.uint8)
         for a, b in zip(kp.arm[:-1], kp.arm[1:]):
             cv2.line(centre, _ipt(a), _ipt(b), 1, max(1, int(round(0.08 * s))))
-        sure = sure | (centre.astype(bool) & ~cv2.dilate(likely.astype(np.uint8), _disk(0.3 * s)).astype(bool))
+        sure = sure | (centre.astype(bool) & ~grow(likely, 0.3 * s))
     init[sure] = cv2.GC_FGD
     init[roi & (prob < cfg.skin_gate) & (init != cv2.GC_FGD) & ~colourless] = cv2.GC_BGD
     if others is not None:
         init[others & ~sure] = cv2.GC_BGD
     fg = _grabcut(bgr, init, cfg.grabcut_iters)
-    fg = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_CLOSE, _disk(1)).astype(bool)
+    fg = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_CLOSE, disk(1)).astype(bool)
     fg &= (prob >= cfg.skin_gate) | sure | colourless
     if others is not None:
         fg &= ~others
@@ -395,8 +385,8 @@ def _segment_nokp(bgr: np.ndarray, ycc: np.ndarray, prob: np.ndarray, cfg: Segme
     shape = prob.shape
     area = shape[0] * shape[1]
     cand = ((prob >= 0.5 * (1 + cfg.skin_threshold)) | prior_rule(ycc)).astype(np.uint8)
-    cand = cv2.morphologyEx(cand, cv2.MORPH_OPEN, _disk(1))
-    cand = cv2.morphologyEx(cand, cv2.MORPH_CLOSE, _disk(2))
+    cand = cv2.morphologyEx(cand, cv2.MORPH_OPEN, disk(1))
+    cand = cv2.morphologyEx(cand, cv2.MORPH_CLOSE, disk(2))
     n, lab, stats, _ = cv2.connectedComponentsWithStats(cand, connectivity=8)
     if n <= 1:
         empty = np.zeros(shape, bool)
@@ -409,12 +399,12 @@ def _segment_nokp(bgr: np.ndarray, ycc: np.ndarray, prob: np.ndarray, cfg: Segme
         return blobs, blobs
     diag = float(np.hypot(*shape))
     init = np.full(shape, cv2.GC_BGD, np.uint8)
-    init[cv2.dilate(blobs.astype(np.uint8), _disk(0.04 * diag)).astype(bool)] = cv2.GC_PR_BGD
+    init[grow(blobs, 0.04 * diag)] = cv2.GC_PR_BGD
     init[blobs] = cv2.GC_PR_FGD
-    core = cv2.erode(blobs.astype(np.uint8), _disk(2)).astype(bool) & (prob >= 0.5)
+    core = cv2.erode(blobs.astype(np.uint8), disk(2)).astype(bool) & (prob >= 0.5)
     init[core] = cv2.GC_FGD
     fg = _grabcut(bgr, init, cfg.grabcut_iters)
-    fg = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_CLOSE, _disk(1)).astype(bool)
+    fg = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_CLOSE, disk(1)).astype(bool)
     fg = _keep_touching(fg, core if core.any() else blobs)
     hand = np.zeros(shape, bool)
     n2, lab2 = cv2.connectedComponents(fg.astype(np.uint8), connectivity=8)
@@ -472,10 +462,19 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def _upsample(soft: np.ndarray, guide: np.ndarray, radius: int, eps: float) -> np.ndarray:
+    """Full-resolution mask: the soft mask resized, then guided-filtered in its support's box.
+
+    The guided filter's output is exactly 0 farther than 2 x radius from the support (its
+    linear coefficients are 0 in every window without support), so the box grown by that
+    gives the full frame's result."""
     h, w = guide.shape[:2]
     up = cv2.resize(soft.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
+    win = bbox(up > 0, 2 * radius + 2)
+    if win is None:
+        return np.zeros((h, w), bool)
     if hasattr(cv2, "ximgproc"):
-        up = cv2.ximgproc.guidedFilter(guide, up, radius, (eps * 255.0) ** 2)
+        up[win] = cv2.ximgproc.guidedFilter(np.ascontiguousarray(guide[win]), np.ascontiguousarray(up[win]), radius,
+                                            (eps * 255.0) ** 2)
     return up >= 0.5
 
 
@@ -588,7 +587,7 @@ def segment(
             continue
         row = kps[i]
         if any(k is not None for k in row):
-            thick = [cv2.dilate(sk.astype(np.uint8), _disk(0.15 * row[k].scale)).astype(bool) if sk is not None else None
+            thick = [grow(sk, 0.15 * row[k].scale) if sk is not None else None
                      for k, sk in enumerate(skel[i])]
             for k, kp in enumerate(row):
                 if kp is None:
@@ -650,7 +649,7 @@ def segment(
             skin = float(prior_rule(ycc[i])[hand_small].mean()) if hand_small.any() else 0.0
             kp = kps[i][k]
             if kp is not None:
-                grown = cv2.dilate(arm_small.astype(np.uint8), _disk(2)).astype(bool)
+                grown = cv2.dilate(arm_small.astype(np.uint8), disk(2)).astype(bool)
                 h, w = arm_small.shape
                 pts = np.round(kp.pts[kp.valid]).astype(int)
                 inside = (pts[:, 0] >= 0) & (pts[:, 0] < w) & (pts[:, 1] >= 0) & (pts[:, 1] < h)

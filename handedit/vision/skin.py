@@ -23,6 +23,16 @@ def to_ycrcb(rgb: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2YCrCb)
 
 
+def colour_loglik(x: np.ndarray, px: np.ndarray, floor: float, dtype=np.float64) -> np.ndarray:
+    """Log-likelihood of colours ``x`` (...,3) under a 3-D Gaussian fitted to pixels ``px``
+    (m,3), its covariance floored by ``floor`` x identity (a hand's own colour against its
+    surroundings': the segmenter's colour gate, registration's hand probability, the
+    composite's residue test), evaluated in ``dtype``."""
+    cov = np.cov(np.asarray(px).T) + np.eye(3) * floor
+    d = (x - np.asarray(px).mean(0)).astype(dtype, copy=False)
+    return -0.5 * ((d @ np.linalg.inv(cov).astype(dtype)) * d).sum(-1) - 0.5 * np.log(np.linalg.det(cov))
+
+
 def prior_rule(ycrcb: np.ndarray) -> np.ndarray:
     """Fixed chrominance box (Chai & Ngan): a generic, uncalibrated skin detector."""
     y, cr, cb = ycrcb[..., 0], ycrcb[..., 1], ycrcb[..., 2]
