@@ -98,7 +98,7 @@ def retarget(
     solved = np.zeros(n, dtype=bool)
 
     tips_present = np.isin(rt.mano_idx, FINGERTIPS)
-    prev = None
+    prev, prev_targets = None, None
     q_anchor = None if init is None else np.asarray(init, float)
     for i in range(n):
         vi = valid[i]
@@ -111,9 +111,10 @@ def retarget(
             pose0 = rt.init_pose(keypoint_palm_frame(kp[i]))
             sol = _cold_solve(rt, cfg, targets, w, q0, pose0, q_prev=q_anchor)
         else:
-            if cfg.warm_start:
-                q0, pose0, warm = prev.q, prev.camera_from_root, prev
-                sol = rt.solve(targets, w, q0, pose0, q_prev=prev.q, prev_pose=prev.camera_from_root, warm=warm)
+            if cfg.warm_start:  # the previous solution, its root moved with the human wrist
+                pose0 = prev.camera_from_root.copy()
+                pose0[:3, 3] += targets[rt.wrist_row] - prev_targets[rt.wrist_row]
+                sol = rt.solve(targets, w, prev.q, pose0, q_prev=prev.q, prev_pose=prev.camera_from_root, warm=prev)
             else:  # cold: the palm-frame (and vector-mode) initialisation, neutral joints, no multipliers
                 sol = _cold_solve(rt, cfg, targets, w, rt.q_neutral, rt.init_pose(keypoint_palm_frame(kp[i])),
                                   q_prev=prev.q, prev_pose=prev.camera_from_root)
@@ -121,7 +122,7 @@ def retarget(
         if not sol.ok:
             status[i] = Reason.SOLVER_FAILED
             continue
-        prev = sol
+        prev, prev_targets = sol, targets
         solved[i] = True
         qpos[i], poses[i] = sol.q, sol.camera_from_root
         pts = rt.robot_points(sol.q, sol.camera_from_root)

@@ -39,7 +39,7 @@ class RetargetConfig(BaseModel):
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
-    VERSION: ClassVar[int] = 2
+    VERSION: ClassVar[int] = 3  # 3: projected Newton per frame (IPOPT where it does not converge)
 
     wrist_weight: float = Field(1.0, ge=0)
     fingertip_weight: float = Field(1.0, ge=0)
@@ -53,6 +53,9 @@ class RetargetConfig(BaseModel):
     reg_q: float = Field(1e-4, ge=0)  # pull towards the neutral pose: resolves redundant joints
     max_iter: int = Field(100, ge=1)
     tol: float = Field(1e-6, gt=0)
+    method: Literal["newton", "ipopt"] = Field(
+        "newton", description="per-frame solver: projected Newton on the exact casadi Hessian (IPOPT from its point where "
+        "it does not converge), or IPOPT alone")
     hybrid: bool = True  # vector-mode coarse alignment before the position solve on cold frames
     warm_start: bool = True  # primal + multipliers from the previous frame of the chunk
     fingertip_reject_mm: float = Field(50.0, gt=0)
