@@ -1,4 +1,5 @@
-"""Retargeting of MANO-order keypoints onto robot hands and hand-arm robots (casadi + IPOPT).
+"""Retargeting of MANO-order keypoints onto robot hands and hand-arm robots (casadi: IPOPT,
+and a projected Newton method on warm frames).
 
 api: hand retargeting (hybrid vector -> position); qc: its automatic QC; arm / virtual_base /
 hand_arm: the hand-arm track (virtual base search, arm IK); preview: review renders.

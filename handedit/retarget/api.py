@@ -32,7 +32,7 @@ class RetargetResult:
     wrist_error_mm: np.ndarray  # (n,) float32
     status: np.ndarray  # (n,) int16 Reason codes
     joint_names: list[str] = field(default_factory=list)
-    solver_status: list[str] = field(default_factory=list)  # IPOPT return status per frame ("" if skipped)
+    solver_status: list[str] = field(default_factory=list)  # solver status per frame, IPOPT's names ("" if skipped)
 
     def slice(self, a: int, b: int) -> "RetargetResult":
         """Frames [a, b) (a chunk of a whole-sequence result)."""
