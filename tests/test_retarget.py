@@ -159,6 +159,18 @@ def test_newton_reaches_ipopts_solution_on_warm_frames(assets, emb_id):
     assert held.any(), "the trajectory never reaches a joint limit: the bounds are untested"
 
 
+def test_newton_step_is_damped_into_a_descent_direction():
+    from handedit.retarget.solver import _damped_solve
+
+    H = np.array([[4.0, 1.0], [1.0, 3.0]])
+    g = np.array([1.0, -2.0])
+    np.testing.assert_allclose(_damped_solve(H, g), np.linalg.solve(H, g))  # positive definite: exact Newton
+    indefinite = np.array([[1.0, 0.0], [0.0, -3.0]])
+    d = _damped_solve(indefinite, g)
+    assert g @ d > 0  # -d descends
+    assert np.all(np.isfinite(_damped_solve(np.full((2, 2), 1e300), g)))
+
+
 def test_no_keypoints_frames(assets):
     kp, valid = _human_trajectory(n=10)
     valid[3, JOINT_INDEX["wrist"]] = False  # palm frame impossible

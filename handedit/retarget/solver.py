@@ -242,7 +242,7 @@ class Retargeter:
                 return self._solution(xs, R_ref, np.zeros_like(xs), "Solve_Succeeded", f, True)
             x0 = xs  # IPOPT from the Newton point
         args = dict(x0=x0, p=p, lbx=self.lbx, ubx=self.ubx)
-        if warm is not None and self.cfg.warm_start and len(warm.lam_x) == len(x0):
+        if warm is not None and self.cfg.warm_start:
             args["lam_x0"] = warm.lam_x
         try:
             sol = self.solver(**args)
@@ -285,7 +285,7 @@ class Retargeter:
             f, g, H = float(fv[0]), gv.copy(), hv.reshape(n, n)
             held = ((x <= lo) & (g > 0)) | ((x >= hi) & (g < 0))
             free = ~held
-            if not np.all(np.isfinite(g)) or not np.isfinite(f):
+            if not (np.isfinite(f) and np.all(np.isfinite(g)) and np.all(np.isfinite(H))):
                 return x, f, False
             if np.abs(g[free]).max(initial=0.0) <= tol * max(1.0, f):
                 return x, f, True
@@ -328,15 +328,17 @@ class _Evaluator:
 
 
 def _damped_solve(H: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """H^-1 g with H + mu I made positive definite (mu grown from 0 until Cholesky succeeds)."""
+    """H^-1 g with H + mu I made positive definite (mu grown from 0 until Cholesky succeeds;
+    past 1e6 x the largest diagonal entry, the scaled gradient)."""
     mu, scale = 0.0, max(1e-8, float(np.abs(np.diag(H)).max(initial=0.0)))
     eye = np.eye(len(g))
-    while True:
+    while mu <= 1e6 * scale:
         try:
             L = np.linalg.cholesky(H + mu * eye)
             return np.linalg.solve(L.T, np.linalg.solve(L, g))
         except np.linalg.LinAlgError:
             mu = max(2.0 * mu, 1e-6 * scale)
+    return g / scale
 
 
 def _cayley_np(c: np.ndarray) -> np.ndarray:
