@@ -65,27 +65,6 @@ def _light_pose_gl(direction_cv: np.ndarray) -> np.ndarray:
     return T
 
 
-def _bind_lighting_once_per_frame(gl: pyrender.OffscreenRenderer) -> None:
-    """pyrender re-sends every light uniform before each primitive (Python; measured 59 -> 50
-    CPU ms per 640x480 Allegro frame on llvmpipe when skipped). Our lights are fixed, unshadowed and
-    fewer than pyrender's per-program maximum, so the values only need setting once per program
-    per frame (GL keeps uniform values in the program object): identical output."""
-    renderer = gl._renderer
-    bind, forward = renderer._bind_lighting, renderer._forward_pass
-    bound: set[int] = set()
-
-    def bind_lighting(scene, program, node, flags):
-        if id(program) not in bound:
-            bind(scene, program, node, flags)
-            bound.add(id(program))
-
-    def forward_pass(scene, flags, seg_node_map=None):
-        bound.clear()
-        return forward(scene, flags, seg_node_map=seg_node_map)
-
-    renderer._bind_lighting, renderer._forward_pass = bind_lighting, forward_pass
-
-
 def _hull_points(model: RobotModel, links: list[str]) -> tuple[np.ndarray, np.ndarray]:
     """(link index (m,), link-frame points (m,3)): each part's convex-hull vertices, whose
     projection bounds the part's (a segment in front of the camera projects to a segment)."""
@@ -176,7 +155,6 @@ class RobotRenderer:
         )
         self.scene.add(self._camera, pose=np.eye(4))
         self._gl = make_offscreen(self.width, self.height)
-        _bind_lighting_once_per_frame(self._gl)
         self._hull_link, self._hull_points = _hull_points(self.model, list(self._link_nodes))
 
     @property

@@ -291,7 +291,7 @@ class Retargeter:
                 return x, f, True
             d = np.zeros_like(x)
             d[free] = -_damped_solve(H[np.ix_(free, free)], g[free])
-            t, fx = 1.0, f
+            t = 1.0
             while t > 1e-6:
                 xn = np.clip(x + t * d, lo, hi)
                 fn = float(cost(xn, p)[0][0])
@@ -299,7 +299,7 @@ class Retargeter:
                     break
                 t *= 0.5
             else:
-                return x, fx, False  # no descent along the arc
+                return x, f, False  # no descent along the arc
             step, gain = np.abs(xn - x).max(), f - fn
             x, f = xn, fn
             if step <= 1e-9 or gain <= 1e-10 * max(1.0, f):  # Newton's gains shrink quadratically: this is the floor

@@ -304,7 +304,7 @@ def _segment_kp(bgr: np.ndarray, ycc: np.ndarray, prob: np.ndarray, kp: _KpFrame
     elif arm_dir is not None:
         far = kp.pts[WRIST] + arm_dir * float(shape[0] + shape[1])
         cv2.line(corridor, _ipt(kp.pts[WRIST]), _ipt(far), 1, max(2, int(round(cfg.forearm_width * s))))
-        roi |= grow(corridor.astype(bool), 0.3 * s)
+        roi |= grow(corridor, 0.3 * s)
 
     init = np.full(shape, cv2.GC_BGD, np.uint8)
     init[roi] = cv2.GC_PR_BGD
