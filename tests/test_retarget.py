@@ -140,23 +140,57 @@ def test_warm_and_cold_agree(assets):
 
 @pytest.mark.parametrize("emb_id", ["allegro", "leap", "inspire"])
 def test_newton_reaches_ipopts_solution_on_warm_frames(assets, emb_id):
-    """The default per-frame solver (projected Newton, warm frames) against IPOPT alone on the
-    same trajectory: residuals within a millimetre per frame and root positions within a
-    centimetre (from the same warm start each may settle in a neighbouring minimum: on Leap
-    here Newton's objective ends up to 6 % above IPOPT's from the fifth frame, its tips
-    0.7 mm farther and its root 6 mm away), joints exactly within limits."""
-    kp, valid = _synthetic_keypoints()
-    newton = retarget(kp, valid, emb_id, CFG)
-    ipopt = retarget(kp, valid, emb_id, CFG.model_copy(update={"method": "ipopt"}))
-    assert CFG.method == "newton" and (newton.status == Reason.OK).all()
-    assert all(s == "Solve_Succeeded" for s in newton.solver_status)
-    np.testing.assert_allclose(newton.fingertip_error_mm, ipopt.fingertip_error_mm, atol=1.0)
-    assert abs(newton.fingertip_error_mm.mean() - ipopt.fingertip_error_mm.mean()) < 0.5
-    np.testing.assert_allclose(newton.root_pose[:, :3, 3], ipopt.root_pose[:, :3, 3], atol=1e-2)
-    _assert_within_limits(emb_id, newton.qpos)
-    held = (np.isclose(newton.qpos, get_retargeter(emb_id, CFG).kin.lower, atol=1e-7)
-            | np.isclose(newton.qpos, get_retargeter(emb_id, CFG).kin.upper, atol=1e-7))
-    assert held.any(), "the trajectory never reaches a joint limit: the bounds are untested"
+    """The default warm-frame solver (projected Newton) against IPOPT from the same previous
+    frame (IPOPT's own trajectory): the same minimum, tips within a millimetre and root
+    within a centimetre (a neighbouring minimum may differ by that: Leap here), a joint limit
+    reached and held."""
+    from handedit.retarget.palm import keypoint_palm_frame
+
+    kp, _ = _synthetic_keypoints()
+    newton, ipopt = get_retargeter(emb_id, CFG), get_retargeter(emb_id, CFG.model_copy(update={"method": "ipopt"}))
+    assert CFG.method == "newton"
+    prev, held = None, False
+    for i in range(len(kp)):
+        targets = kp[i, ipopt.mano_idx]
+        if prev is None:
+            prev = ipopt.solve(targets, ipopt.base_w, ipopt.q_neutral, ipopt.init_pose(keypoint_palm_frame(kp[i])))
+            continue
+        pose0 = prev.camera_from_root.copy()
+        pose0[:3, 3] += targets[ipopt.wrist_row] - kp[i - 1, ipopt.mano_idx][ipopt.wrist_row]
+        a, b = (rt.solve(targets, rt.base_w, prev.q, pose0, q_prev=prev.q, prev_pose=prev.camera_from_root, warm=prev)
+                for rt in (newton, ipopt))
+        assert a.ok and a.status == "Solve_Succeeded"
+        assert a.cost <= b.cost * 1.06, (i, a.cost, b.cost)
+        tips = [np.linalg.norm(newton.robot_points(s.q, s.camera_from_root)[newton.tip_rows] - targets[newton.tip_rows], axis=1)
+                for s in (a, b)]
+        np.testing.assert_allclose(tips[0], tips[1], atol=1e-3)
+        np.testing.assert_allclose(a.camera_from_root[:3, 3], b.camera_from_root[:3, 3], atol=1e-2)
+        held |= bool(np.any(np.isclose(a.q, newton.kin.lower, atol=1e-7) | np.isclose(a.q, newton.kin.upper, atol=1e-7)))
+        prev = b
+    assert held, "the trajectory never reaches a joint limit: the bounds are untested"
+
+
+@pytest.mark.parametrize("emb_id", ["allegro", "leap", "shadow", "wuji"])
+def test_cold_frames_reach_ipopts_minima_along_the_barrier_path(assets, emb_id):
+    """Cold frames (no previous solution; the hybrid's two starts): the barrier path + Newton
+    ends at a cost no more than 3 % above IPOPT's on any frame and within 0.5 % of it on average
+    (on Leap it is lower on most frames: pure projected Newton from these starts ended 36 %
+    higher). Every frame converges without IPOPT's help."""
+    from handedit.retarget.api import _cold_solve
+    from handedit.retarget.palm import keypoint_palm_frame
+
+    ipopt_cfg = CFG.model_copy(update={"method": "ipopt"})
+    costs = {}
+    for cfg in (CFG, ipopt_cfg):
+        rt = get_retargeter(emb_id, cfg)
+        sols = [_cold_solve(rt, cfg, kp[0, rt.mano_idx], rt.base_w, rt.q_neutral, rt.init_pose(keypoint_palm_frame(kp[0])))
+                for kp in (_synthetic_keypoints(n=24)[0][t:t + 1] for t in range(0, 24, 3))]
+        assert all(s.ok for s in sols)
+        costs[cfg.method] = np.array([s.cost for s in sols])
+        if cfg.method == "newton":
+            assert all(s.status == "Solve_Succeeded" and not s.lam_x.any() for s in sols)  # no IPOPT fallback
+    ratio = costs["newton"] / costs["ipopt"]
+    assert ratio.max() <= 1.03 and ratio.mean() <= 1.005, ratio
 
 
 def test_newton_step_is_damped_into_a_descent_direction():

@@ -39,7 +39,7 @@ class RetargetConfig(BaseModel):
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
-    VERSION: ClassVar[int] = 3  # 3: projected Newton per frame (IPOPT where it does not converge)
+    VERSION: ClassVar[int] = 4  # 3: projected Newton per frame (IPOPT where it does not converge); 4: cold frames too, after a barrier path
 
     wrist_weight: float = Field(1.0, ge=0)
     fingertip_weight: float = Field(1.0, ge=0)
@@ -55,7 +55,7 @@ class RetargetConfig(BaseModel):
     tol: float = Field(1e-6, gt=0)
     method: Literal["newton", "ipopt"] = Field(
         "newton", description="per-frame solver: projected Newton on the exact casadi Hessian (IPOPT from its point where "
-        "it does not converge), or IPOPT alone")
+        "it does not converge; cold frames after a log-barrier path), or IPOPT alone")
     hybrid: bool = True  # vector-mode coarse alignment before the position solve on cold frames
     warm_start: bool = True  # primal + multipliers from the previous frame of the chunk
     fingertip_reject_mm: float = Field(50.0, gt=0)
