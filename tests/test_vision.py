@@ -448,6 +448,32 @@ def test_restore_median_of_seen_candidates_is_nanmedian():
     np.testing.assert_array_equal(_median_seen(C, V), want)
 
 
+def test_restore_box_warps_and_histogram_median_are_the_full_frame_ones():
+    """Restoration warps only the hole's box (and the alignment check's every-other-pixel
+    grid) and takes medians of grey differences from histograms: the same pixels and values
+    as warping the whole frame and ``np.median``."""
+    from handedit.metrics.similarity import bbox
+    from handedit.vision.restore_background import _into_box, _median_u8, _size
+
+    rng = np.random.default_rng(5)
+    img = cv2.GaussianBlur(rng.integers(0, 255, (120, 160, 3), dtype=np.uint8), (0, 0), 2)
+    Hm = np.array([[1.01, 0.02, 3.3], [-0.015, 0.99, -2.1], [2e-5, -1e-5, 1.0]])
+    hole = np.zeros((120, 160), bool)
+    hole[40:90, 30:100] = True
+    full = cv2.warpPerspective(img, Hm, (160, 120), flags=cv2.INTER_LINEAR)
+    win = bbox(hole, 7)
+    np.testing.assert_array_equal(cv2.warpPerspective(img, _into_box(Hm, win), _size(win), flags=cv2.INTER_LINEAR), full[win])
+    frame = (slice(0, 120), slice(0, 160))
+    grid = cv2.warpPerspective(img, _into_box(Hm, frame, 2), _size(frame, 2), flags=cv2.INTER_LINEAR)
+    assert grid.shape == full[::2, ::2].shape
+    assert np.abs(grid.astype(int) - full[::2, ::2]).max() <= 1  # fixed-point rounding of the scaled map at most
+    for n_true in (1, 2, 7, 1000):
+        a = rng.integers(0, 256, (40, 50), dtype=np.uint8)
+        m = np.zeros(a.shape, bool)
+        m.flat[rng.choice(a.size, n_true, replace=False)] = True
+        assert _median_u8(a, m) == np.median(a[m])
+
+
 def test_segment_upsample_in_the_support_box_is_the_full_frame_filter():
     from handedit.vision.segment import _upsample
 

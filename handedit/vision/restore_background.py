@@ -36,7 +36,7 @@ from handedit.vision.skin import prior_rule, to_ycrcb
 
 
 class RestoreConfig(pydantic.BaseModel):
-    VERSION: ClassVar[int] = 3
+    VERSION: ClassVar[int] = 4
     model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
 
     method: Literal["classical", "onnx"] = "classical"
@@ -52,6 +52,10 @@ class RestoreConfig(pydantic.BaseModel):
     gain_compensation: bool = True
     inpaint: Literal["telea", "ns", "fsr_fast", "shiftmap"] = "telea"
     inpaint_radius: int = 5
+    inpaint_scale: float = pydantic.Field(0.5, gt=0, le=1, description="Telea/NS fill more than inpaint_full_scale_px unseen "
+                                          "pixels at this scale: a smooth fill either way, at half size a tenth of the time")
+    inpaint_full_scale_px: int = pydantic.Field(4096, ge=0, description="fills up to this many pixels stay at full scale (a "
+                                                "few ms; their edge detail is most of them)")
     residue_threshold: float = 0.25  # skin-coloured fraction of the restored region (above the ring's) -> RESIDUE
     ghost_threshold: float = pydantic.Field(20.0, gt=0)  # median |grey diff| vs the best adjacent frame -> GHOSTING
     ghost_min_overlap: float = pydantic.Field(0.2, ge=0, le=1)  # fraction of the hole a neighbour must see to judge
@@ -102,10 +106,30 @@ class _Features:
 
 
 def _homography(feats: _Features, j: int, t: int, cfg: RestoreConfig) -> np.ndarray | None:
-    """3x3 taking frame j's pixels onto frame t's, or None when the fit is not trusted."""
+    """3x3 taking frame j's pixels onto frame t's, or None when the fit is not trusted. (The
+    inverse of t -> j is not used for it: it restored 0.1-0.2 dB worse on the demo clips.)"""
     if (j, t) not in feats.homographies:
         feats.homographies[j, t] = _fit_homography(feats, j, t, cfg)
     return feats.homographies[j, t]
+
+
+def _into_box(Hm: np.ndarray, box: tuple[slice, slice], step: int = 1) -> np.ndarray:
+    """Hm followed by the map from the frame onto ``box``'s pixels (every ``step``-th one):
+    warping with it gives exactly the full warp's pixels there, at the box's cost."""
+    S = np.array([[1.0 / step, 0.0, -box[1].start / step], [0.0, 1.0 / step, -box[0].start / step], [0.0, 0.0, 1.0]])
+    return S @ Hm
+
+
+def _size(box: tuple[slice, slice], step: int = 1) -> tuple[int, int]:
+    """(width, height) of ``box`` sampled every ``step`` pixels, as cv2 takes it."""
+    return len(range(box[1].start, box[1].stop, step)), len(range(box[0].start, box[0].stop, step))
+
+
+def _median_u8(a: np.ndarray, mask: np.ndarray) -> float:
+    """``np.median(a[mask])`` of a uint8 image, from its masked histogram (no gather, no sort)."""
+    c = np.cumsum(cv2.calcHist([a], [0], mask.view(np.uint8), [256], [0, 256]).ravel())
+    n = int(c[-1])
+    return float(np.searchsorted(c, (n - 1) // 2, side="right") + np.searchsorted(c, n // 2, side="right")) / 2
 
 
 def _fit_homography(feats: _Features, j: int, t: int, cfg: RestoreConfig) -> np.ndarray | None:
@@ -147,12 +171,26 @@ def _median_seen(C: np.ndarray, V: np.ndarray) -> np.ndarray:
 
 
 def _inpaint(img: np.ndarray, hole: np.ndarray, cfg: RestoreConfig) -> np.ndarray:
-    if cfg.inpaint in ("telea", "ns"):  # local methods: the hole's box grown past their radius is exact
-        win = bbox(hole, cfg.inpaint_radius + 2)
-        res = img.copy()
-        res[win] = _inpaint_full(np.ascontiguousarray(img[win]), np.ascontiguousarray(hole[win]), cfg)
+    if cfg.inpaint not in ("telea", "ns"):
+        return _inpaint_full(img, hole, cfg)
+    # local methods: the hole's box grown past their reach is exact; below full scale a
+    # small pixel is known only where all of its pixels are, and the fill is upsampled
+    # (demo clips, hand-arm hole: 27.34 dB against 27.12 at full scale, predicted masks;
+    # 24.30 against 24.21, true masks; the fill ~10x faster)
+    s = cfg.inpaint_scale if cv2.countNonZero(hole.view(np.uint8)) > cfg.inpaint_full_scale_px else 1.0
+    win = bbox(hole, int(np.ceil((cfg.inpaint_radius + 2) / s)) + 1)
+    sub, hs = np.ascontiguousarray(img[win]), hole[win]
+    res = img.copy()
+    if s >= 1:
+        res[win] = _inpaint_full(sub, np.ascontiguousarray(hs), cfg)
         return res
-    return _inpaint_full(img, hole, cfg)
+    h, w = hs.shape
+    size = (max(1, round(w * s)), max(1, round(h * s)))
+    small = cv2.resize(sub, size, interpolation=cv2.INTER_AREA)
+    small_hole = cv2.resize(hs.view(np.uint8) * np.uint8(255), size, interpolation=cv2.INTER_AREA) > 0
+    filled = _inpaint_full(small, small_hole, cfg)  # the same radius in (coarser) pixels: the wider reach restored better
+    res[win][hs] = cv2.resize(filled, (w, h), interpolation=cv2.INTER_LINEAR)[hs]
+    return res
 
 
 def _inpaint_full(img: np.ndarray, hole: np.ndarray, cfg: RestoreConfig) -> np.ndarray:
@@ -177,9 +215,11 @@ def _inpaint_full(img: np.ndarray, hole: np.ndarray, cfg: RestoreConfig) -> np.n
 
 def _residue(img: np.ndarray, hole: np.ndarray, thr: float) -> bool:
     """Skin-coloured pixels left in the restored region, beyond what its surroundings show."""
-    if not hole.any():
+    win = bbox(hole, 15)  # the hole and its ring
+    if win is None:
         return False
-    skin = prior_rule(to_ycrcb(img))
+    img, hole = img[win], hole[win]
+    skin = prior_rule(to_ycrcb(np.ascontiguousarray(img)))
     ring = _dilate(hole, 15) & ~hole
     ring_rate = float(skin[ring].mean()) if ring.any() else 0.0
     return float(skin[hole].mean()) > thr + ring_rate
@@ -200,21 +240,21 @@ def _checks(img, hole, t, frames, holes, ok, feats, cfg: RestoreConfig) -> Reaso
 def _ghosting(img: np.ndarray, hole: np.ndarray, t: int, frames: np.ndarray, holes: np.ndarray, ok: np.ndarray,
               feats: "_Features", cfg: RestoreConfig) -> float | None:
     """Median |grey diff| of the restored hole against the best-agreeing adjacent frame."""
-    H, W = hole.shape
-    g = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    win = bbox(hole)  # only the hole's pixels are compared: warp into its box
+    hole = hole[win]
+    g = cv2.cvtColor(np.ascontiguousarray(img[win]), cv2.COLOR_RGB2GRAY)
     best = None
     for j in (t - 1, t + 1):
         if not (0 <= j < len(frames)) or not ok[j]:
             continue
         Hm = np.eye(3) if cfg.align == "identity" else _homography(feats, j, t, cfg)
-        if Hm is None:
-            Hm = np.eye(3)
-        seen = cv2.warpPerspective((~holes[j]).astype(np.uint8), Hm, (W, H), flags=cv2.INTER_NEAREST) > 0
+        Hb = _into_box(np.eye(3) if Hm is None else Hm, win)
+        seen = cv2.warpPerspective((~holes[j]).view(np.uint8), Hb, _size(win), flags=cv2.INTER_NEAREST) > 0
         both = seen & hole
         if both.sum() < max(20, cfg.ghost_min_overlap * hole.sum()):
             continue
-        gw = cv2.cvtColor(cv2.warpPerspective(frames[j], Hm, (W, H), flags=cv2.INTER_LINEAR), cv2.COLOR_RGB2GRAY)
-        err = float(np.median(np.abs(gw.astype(np.float32)[both] - g[both])))
+        gw = cv2.cvtColor(cv2.warpPerspective(frames[j], Hb, _size(win), flags=cv2.INTER_LINEAR), cv2.COLOR_RGB2GRAY)
+        err = _median_u8(cv2.absdiff(gw, g), both)
         best = err if best is None else min(best, err)
     return best
 
@@ -245,7 +285,7 @@ def restore_background(
 
     def grey(i: int) -> np.ndarray:
         if gray[i] is None:
-            gray[i] = cv2.cvtColor(frames[i], cv2.COLOR_RGB2GRAY).astype(np.float32)
+            gray[i] = cv2.cvtColor(frames[i], cv2.COLOR_RGB2GRAY)
         return gray[i]
 
     n = len(targets)
@@ -260,15 +300,20 @@ def restore_background(
     out = np.zeros((n, H, W, 3), np.uint8)
     status = np.full(n, Reason.OK, STATUS_DTYPE)
     filled_frac = np.zeros(n, np.float32)
-    ones = np.ones((H, W), np.uint8)
+    full = (slice(0, H), slice(0, W))
     for k, t in enumerate(targets):
         img = frames[t].copy()
         hole = holes[t]
         if not hole.any():
             out[k] = img
             continue
-        ring = _dilate(hole, 25) & ~hole
-        hy, hx = np.nonzero(hole)
+        # the hole and its gain ring: the only pixels warped in colour (the alignment check
+        # samples every other pixel of the frame, warped straight onto that grid, in grey)
+        win = bbox(hole, 25)
+        ring = (_dilate(hole, 25) & ~hole)[win]
+        hy, hx = np.nonzero(hole[win])
+        keep = ~hole[::2, ::2]
+        target_grey = grey(int(t))[::2, ::2]
         cands, valids = [], []
         for j in _sources(int(t), m, cfg) if ok[t] else []:
             if not ok[j]:
@@ -276,19 +321,22 @@ def restore_background(
             Hm = np.eye(3) if cfg.align == "identity" else _homography(feats, j, int(t), cfg)
             if Hm is None:
                 Hm = np.eye(3)  # textureless or static: identity, if the photometric check agrees
-            warped = cv2.warpPerspective(frames[j], Hm, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-            seen = cv2.warpPerspective((~holes[j]).astype(np.uint8) & ones, Hm, (W, H), flags=cv2.INTER_NEAREST) > 0
-            shared = seen[::2, ::2] & ~hole[::2, ::2]  # every other pixel: the median needs no more
-            if shared.sum() < 25:
+            visible = (~holes[j]).view(np.uint8)
+            Hs = _into_box(Hm, full, 2)
+            shared = (cv2.warpPerspective(visible, Hs, _size(full, 2), flags=cv2.INTER_NEAREST) > 0) & keep
+            if cv2.countNonZero(shared.view(np.uint8)) < 25:
                 continue
-            gw = cv2.cvtColor(warped[::2, ::2], cv2.COLOR_RGB2GRAY).astype(np.float32)
-            if float(np.median(np.abs(gw[shared] - grey(int(t))[::2, ::2][shared]))) > cfg.max_align_error:
+            gw = cv2.warpPerspective(grey(j), Hs, _size(full, 2), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+            if _median_u8(cv2.absdiff(gw, target_grey), shared) > cfg.max_align_error:
                 continue  # misaligned, lighting jump or moving scene: would ghost
+            Hb = _into_box(Hm, win)
+            warped = cv2.warpPerspective(frames[j], Hb, _size(win), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+            seen = cv2.warpPerspective(visible, Hb, _size(win), flags=cv2.INTER_NEAREST) > 0
             vals = warped[hy, hx].astype(np.float32)
             if cfg.gain_compensation:
                 near = (ring & seen).view(np.uint8)
                 if cv2.countNonZero(near) >= 50:  # masked means (cv2: no gathers of the ring's pixels)
-                    gain = np.array(cv2.mean(img, near)[:3]) / np.maximum(cv2.mean(warped, near)[:3], 1.0)
+                    gain = np.array(cv2.mean(np.ascontiguousarray(img[win]), near)[:3]) / np.maximum(cv2.mean(warped, near)[:3], 1.0)
                     vals *= np.clip(gain, 0.8, 1.25).astype(np.float32)
             cands.append(vals)
             valids.append(seen[hy, hx])
@@ -303,10 +351,10 @@ def restore_background(
             many = cnt >= 3
             if many.any():
                 val[many] = _median_seen(C[:, many], V[:, many])
-            img[hy[filled], hx[filled]] = np.clip(np.round(val[filled]), 0, 255).astype(np.uint8)
+            img[win][hy[filled], hx[filled]] = np.clip(np.round(val[filled]), 0, 255).astype(np.uint8)
         filled_frac[k] = float(filled.mean())
         rest = np.zeros((H, W), bool)
-        rest[hy[~filled], hx[~filled]] = True
+        rest[win][hy[~filled], hx[~filled]] = True
         if rest.any():
             img = _inpaint(img, rest, cfg)
         out[k] = img
