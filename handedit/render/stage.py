@@ -17,7 +17,7 @@ class RenderConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    VERSION: ClassVar[int] = 3  # 3: decimate only simplifies dense meshes, silhouette-checked
+    VERSION: ClassVar[int] = 4  # 3: decimate only simplifies dense meshes, silhouette-checked; 4: stalled passes retried
     decimate: float | None = Field(None, gt=0.0, le=1.0, description="fraction of faces kept")
     min_visible_pixels: int = Field(20, ge=0, description="fewer robot pixels than this -> EMPTY_RENDER")
     materials: dict[str, tuple[float, float, float, float]] | None = Field(
