@@ -114,7 +114,8 @@ def clip_nodes(clip: ClipPlan, scopes, frames_per_chunk: int, restore_window: in
             lo, hi = max(0, s - restore_window), min(clip.n_frames, e + restore_window)
             window = [j for j, (a, b) in enumerate(ranges) if a < hi and b > lo]
             deps = [Dep(ingest, j, ("frames",)) for j in window]
-            deps += [Dep(segment, j, (SCOPE_MASK[scope], "status")) for j in window]
+            masks = tuple(dict.fromkeys((SCOPE_MASK[scope], SCOPE_MASK["hand"])))  # + the alignment features' (hand) masks
+            deps += [Dep(segment, j, (*masks, "status")) for j in window]
             nodes.append(Node(restore, k, s, e, deps, {"window": [lo, hi]}))
     return nodes
 

@@ -20,13 +20,15 @@ from handedit.tasks.common import ChunkJob, StageOutput, execute
 
 def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     lo, hi = job.context["window"]
-    clip, mask_name = job.unit.clip, SCOPE_MASK[job.unit.scope]
+    clip, mask_name, features = job.unit.clip, SCOPE_MASK[job.unit.scope], SCOPE_MASK["hand"]
     src = read_chunk(root, Unit("ingest", clip), ["frames"], lo, hi)
-    seg = read_chunk(root, Unit("segment", clip), [mask_name, "status"], lo, hi)
+    seg = read_chunk(root, Unit("segment", clip), sorted({mask_name, features, "status"}), lo, hi)
     usable = gate(seg["status"])  # frames whose masks can be trusted, as sources or targets
     targets = np.arange(job.start - lo, job.stop - lo)
-    # every hand is removed (the union of the per-hand masks); composite pastes back hands it does not replace
-    result = restore(src["frames"], seg[mask_name].any(axis=1), targets, RestoreConfig(**job.params), frame_ok=usable)
+    # every hand is removed (the union of the per-hand masks); composite pastes back hands it does not replace;
+    # both scopes align on the background around the hands (the same homographies, fitted once)
+    result = restore(src["frames"], seg[mask_name].any(axis=1), targets, RestoreConfig(**job.params), frame_ok=usable,
+                     feature_masks=seg[features].any(axis=1))
     arrays = {"background": result.background, "filled_from_video": result.filled_from_video}
     return StageOutput(arrays, combine(result.status, usable[targets]), method=result.method)
 

@@ -232,6 +232,30 @@ def test_restore_background_propagation_beats_inpainting():
     np.testing.assert_array_equal(r.background[0][~hole], frames[t][~hole])  # outside the hole: untouched
 
 
+def test_restore_scopes_share_their_homographies(monkeypatch):
+    """The second scope of a clip, aligned on the same feature masks, fits no homography
+    again: it reuses the first's, and restores exactly what it restores fitting its own."""
+    import importlib
+
+    rb = importlib.import_module("handedit.vision.restore_background")
+    frames, bgs, arms = _panning_scene(n=5)
+    hands = arms & (np.arange(arms.shape[1])[None, :, None] < 110)  # a smaller hole, as the hand scope's
+    targets = np.arange(5)
+    rb._FITTED.clear()
+    alone = rb.restore_background(frames, arms, targets, RestoreConfig(), feature_masks=hands)
+    rb._FITTED.clear()
+    fits = []
+    fit = rb._fit_homography
+    monkeypatch.setattr(rb, "_fit_homography", lambda *a: fits.append(a[1:3]) or fit(*a))
+    rb.restore_background(frames, hands, targets, RestoreConfig(), feature_masks=hands)
+    first = len(fits)
+    shared = rb.restore_background(frames, arms, targets, RestoreConfig(), feature_masks=hands)
+    assert first >= 10 and len(fits) == first, "the second scope refitted"
+    np.testing.assert_array_equal(shared.background, alone.background)
+    with pytest.raises(ValueError, match="feature_masks"):
+        rb.restore_background(frames, arms, targets, RestoreConfig(), feature_masks=hands[:2])
+
+
 def test_restore_background_without_other_frames_inpaints():
     frames, bgs, arms = _panning_scene(n=3)
     for method in ("telea", "fsr_fast"):
