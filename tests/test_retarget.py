@@ -194,7 +194,7 @@ def test_cold_frames_reach_ipopts_minima_along_the_barrier_path(assets, emb_id):
 
 
 def test_newton_step_is_damped_into_a_descent_direction():
-    from handedit.retarget.solver import _damped_solve
+    from handedit.retarget.newton import damped_solve as _damped_solve
 
     H = np.array([[4.0, 1.0], [1.0, 3.0]])
     g = np.array([1.0, -2.0])

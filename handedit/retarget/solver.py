@@ -11,46 +11,34 @@ the per-point weights w_k are parameters (0 for invalid keypoints) and the smoot
 terms are switched by parameters (off on the first frame of a chunk). Building the casadi/IPOPT solver
 takes ~0.1-1 s; warm-started re-solves take a few ms, hence the cache in ``api``.
 
-A warm-started frame (``method="newton"``, the default) is solved by a projected Newton
-method on the bound-constrained problem (Bertsekas 1982): the exact gradient and Hessian
-come from one casadi function (called through its buffer), variables at a bound whose
-gradient pushes outward are held, the Newton step of the others is damped until the
-Hessian is positive definite, and an Armijo search runs along the projected arc. A few
-iterations of a 20-30 variable dense system replace IPOPT, which spent most of its ~4 ms
-per frame in its own machinery (the function evaluations were ~0.7 ms). A cold frame
-(and the vector-mode stage) is far from its solution: there a pure projected Newton lands on
-the first joint limits it meets and settles in worse minima (Leap: cost 38.5 against
-IPOPT's 28.3), so it first follows a primal log-barrier path (two barrier weights, a few
-damped Newton steps each, kept inside the bounds by the fraction-to-boundary rule), which is
-what let IPOPT's interior-point method find the lower minima, without its per-iteration
-overhead (~0.5 ms). IPOPT continues from the Newton point wherever Newton does not converge.
+A frame is solved (``method="newton"``, the default) by ``newton.BoundedNewton``: projected
+Newton from a warm start, after a log-barrier path from a cold one (the first frame of a
+chunk, and the vector-mode stage). IPOPT continues from the Newton point wherever Newton
+does not converge; ``method="ipopt"`` uses IPOPT alone.
 """
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
 from pathlib import Path
 
 import casadi as ca
 import numpy as np
-from scipy.linalg.lapack import dpotrf, dpotrs
 
 from handedit.embodiments.kinematics import get_kinematics
 from handedit.embodiments.roster import UrdfAsset
 from handedit.keypoints import FINGERTIPS, JOINT_INDEX, PARENT, WRIST
 from handedit.retarget.config import RetargetConfig
+from handedit.retarget.newton import BoundedNewton, per_thread
 
 CM = 100.0  # metres -> centimetres inside the cost
+BARRIER_MUS = (1.0, 0.03)  # cm^2: 1 keeps the joints clear of their limits while the root turns into place
 _FAIL = {
     "Infeasible_Problem_Detected", "Restoration_Failed", "Error_In_Step_Computation",
     "Invalid_Number_Detected", "Internal_Error", "Invalid_Problem_Definition",
     "Invalid_Option", "Not_Enough_Degrees_Of_Freedom", "Insufficient_Memory",
     "NonIpopt_Exception_Thrown", "Unrecoverable_Exception",
 }
-
-
-_POSITION, _VECTOR = ("_fgh", "_f"), ("_vec_fgh", "_vec_f")  # the two problems' evaluators (``_newton``)
 
 
 @dataclass
@@ -136,17 +124,15 @@ class Retargeter:
                 "warm_start_mult_bound_push": 1e-6, "mu_init": 1e-4,
             })
         self.solver = ca.nlpsol("retarget", "ipopt", {"x": x, "p": p, "f": cost}, opts)
-        hess, grad = ca.hessian(cost, x)
-        self._f = ca.Function("f", [x, p], [cost])
-        self._fgh = ca.Function("fgh", [x, p], [cost, grad, ca.densify(hess)])
         self._evaluators: dict = {}
-        self._build_vector_solver(qf, t, c, P_root, R_ref, Y, W, kps, cfg)
         inf = 1e20
         lo = np.where(np.isfinite(self.lower[self.free]), self.lower[self.free], -inf)
         hi = np.where(np.isfinite(self.upper[self.free]), self.upper[self.free], inf)
         self.lbx = np.concatenate([lo, np.full(6, -inf)])
         self.ubx = np.concatenate([hi, np.full(6, inf)])
         self.nf, self.K = nf, K
+        self.newton = BoundedNewton("retarget", cost, x, p, self.lbx, self.ubx, cfg.tol)
+        self._build_vector_solver(qf, t, c, P_root, R_ref, Y, W, kps, cfg)
 
     def _build_vector_solver(self, qf, t, c, P_root, R_ref, Y, W, kps, cfg: RetargetConfig) -> None:
         """Vector mode (hybrid stage 1): match bone directions/lengths, scaled to the robot.
@@ -183,9 +169,7 @@ class Retargeter:
         opts = {"print_time": False, "ipopt": {"print_level": 0, "sb": "yes", "max_iter": 60, "tol": 1e-4,
                                                "acceptable_tol": 1e-3, "mu_strategy": "adaptive"}}
         self.vec_solver = ca.nlpsol("retarget_vec", "ipopt", {"x": x, "p": p, "f": cost}, opts)
-        hess, grad = ca.hessian(cost, x)
-        self._vec_f = ca.Function("vec_f", [x, p], [cost])
-        self._vec_fgh = ca.Function("vec_fgh", [x, p], [cost, grad, ca.densify(hess)])
+        self.vec_newton = BoundedNewton("retarget_vec", cost, x, p, self.lbx, self.ubx, cfg.tol)
         mid, wr = present.get(JOINT_INDEX["middle_mcp"]), present.get(WRIST)
         P0 = np.asarray(self._points_fn(self.q_neutral), float)
         self._robot_palm_len = float(np.linalg.norm(P0[:, mid] - P0[:, wr])) if mid is not None and wr is not None else 0.0
@@ -203,7 +187,7 @@ class Retargeter:
         p = np.concatenate([targets.T.reshape(-1, order="F"), weights, pose0[:3, :3].reshape(-1, order="F"), [scale], pose0[:3, 3]])
         xs, converged = x0, False
         if self.cfg.method == "newton":
-            xs, _, converged = self._newton(self._barrier(x0, p, _VECTOR), p, _VECTOR)
+            xs, _, converged = self.vec_newton.solve(self.vec_newton.barrier(x0, p, BARRIER_MUS), p)
         if not converged:
             try:
                 sol = self.vec_solver(x0=x0, p=p, lbx=self.lbx, ubx=self.ubx)
@@ -223,7 +207,7 @@ class Retargeter:
     # -- numeric helpers ------------------------------------------------------------------
     def robot_points(self, q: np.ndarray, camera_from_root: np.ndarray) -> np.ndarray:
         """(K,3) correspondence points of the robot in the camera frame."""
-        P = self._evaluator("_points_fn")(q)[0].reshape(3, -1, order="F")  # (3,K)
+        P = per_thread(self._evaluators, self._points_fn)(q)[0].reshape(3, -1, order="F")  # (3,K)
         return (camera_from_root[:3, :3] @ P + camera_from_root[:3, 3:4]).T
 
     def init_pose(self, camera_from_wrist: np.ndarray) -> np.ndarray:
@@ -252,7 +236,7 @@ class Retargeter:
             [0.0 if q_prev is None else 1.0, 0.0 if prev_pose is None else 1.0],
         ])
         if self.cfg.method == "newton":  # cold frames first follow the barrier path (module doc)
-            xs, f, converged = self._newton(x0 if warm is not None else self._barrier(x0, p, _POSITION), p, _POSITION)
+            xs, f, converged = self.newton.solve(x0 if warm is not None else self.newton.barrier(x0, p, BARRIER_MUS), p)
             if converged:
                 return self._solution(xs, R_ref, np.zeros_like(xs), "Solve_Succeeded", f, True)
             x0 = xs  # IPOPT from the Newton point
@@ -280,123 +264,6 @@ class Retargeter:
         pose[:3, :3] = R_ref @ _cayley_np(xs[self.nf + 3:])
         pose[:3, 3] = xs[self.nf: self.nf + 3]
         return FrameSolution(q, pose, ok, xs, lam, status, f if ok else float("inf"))
-
-    def _evaluator(self, name: str) -> "_Evaluator":
-        key = (name, threading.get_ident())  # a buffer is one call's memory: one per thread
-        if key not in self._evaluators:
-            self._evaluators[key] = _Evaluator(getattr(self, name))
-        return self._evaluators[key]
-
-    def _barrier(self, x0: np.ndarray, p: np.ndarray, fns: tuple[str, str], mus: tuple[float, ...] = (1.0, 0.03),
-                 steps: int = 6) -> np.ndarray:
-        """A point near the end of the log-barrier path from x0 (module doc): for each barrier
-        weight mu, up to ``steps`` damped Newton steps on cost - mu sum(log(x - lo) + log(hi - x)),
-        each kept 1 % short of the bounds, until the barrier gradient is below 10 mu. Weights
-        are in the cost's units (cm^2): mu = 1 keeps the joints clear of their limits while the
-        root turns into place; 0.03 is close enough for the projected Newton to finish."""
-        lo, hi = self.lbx, self.ubx
-        fgh, cost = self._evaluator(fns[0]), self._evaluator(fns[1])
-        bl, bh = lo > -1e19, hi < 1e19
-        n = len(x0)
-        push = 0.01 * np.where(bl & bh, hi - lo, 1.0)  # IPOPT's bound_push, relative to the range
-        x = np.clip(x0, np.where(bl, lo + push, -np.inf), np.where(bh, hi - push, np.inf))
-
-        def log_barrier(z: np.ndarray) -> float:
-            return float(np.log(z[bl] - lo[bl]).sum() + np.log(hi[bh] - z[bh]).sum())
-
-        for mu in mus:
-            for _ in range(steps):
-                fv, gv, hv = fgh(x, p)
-                dl, dh = np.where(bl, x - lo, np.inf), np.where(bh, hi - x, np.inf)
-                g = gv - mu / dl + mu / dh
-                H = hv.reshape(n, n) + np.diag(mu / dl**2 + mu / dh**2)
-                if not np.isfinite(fv[0] + g.sum() + H.sum()):
-                    return x
-                if np.abs(g).max() <= 10.0 * mu:
-                    break
-                d = -_damped_solve(H, g)
-                with np.errstate(divide="ignore"):  # fraction to the boundary: 99 % of the way at most
-                    t = min(1.0, float(np.min(np.where(d < 0, -0.99 * dl / d, np.inf))),
-                            float(np.min(np.where(d > 0, 0.99 * dh / d, np.inf))))
-                phi = float(fv[0]) - mu * log_barrier(x)
-                while t > 1e-8:
-                    xn = x + t * d
-                    if float(cost(xn, p)[0][0]) - mu * log_barrier(xn) <= phi + 1e-4 * t * float(g @ d):
-                        break
-                    t *= 0.5
-                else:
-                    break  # no descent at this weight: on to the next
-                x = xn
-        return x
-
-    def _newton(self, x0: np.ndarray, p: np.ndarray, fns: tuple[str, str] = _POSITION,
-                max_iter: int = 40) -> tuple[np.ndarray, float, bool]:
-        """(x, cost, converged): projected Newton from x0 (module doc) on the problem whose
-        (cost+gradient+Hessian, cost) functions ``fns`` names. Converged: the projected
-        gradient's largest entry is below ``tol`` x max(1, cost), or a step moves no variable
-        by more than 1e-9 or gains less than 1e-10 of the cost."""
-        lo, hi, tol = self.lbx, self.ubx, self.cfg.tol
-        fgh, cost = self._evaluator(fns[0]), self._evaluator(fns[1])
-        n = len(x0)
-        x = np.clip(x0, lo, hi)
-        for _ in range(max_iter):
-            fv, gv, hv = fgh(x, p)
-            f, g, H = float(fv[0]), gv.copy(), hv.reshape(n, n)
-            held = ((x <= lo) & (g > 0)) | ((x >= hi) & (g < 0))
-            free = ~held
-            if not np.isfinite(f + g.sum() + hv.sum()):  # a NaN or inf anywhere propagates into the sum
-                return x, f, False
-            if np.abs(g[free]).max(initial=0.0) <= tol * max(1.0, f):
-                return x, f, True
-            d = np.zeros_like(x)
-            d[free] = -_damped_solve(H[np.ix_(free, free)], g[free])
-            t = 1.0
-            while t > 1e-6:
-                xn = np.clip(x + t * d, lo, hi)
-                fn = float(cost(xn, p)[0][0])
-                if fn <= f + 1e-4 * float(g @ (xn - x)):
-                    break
-                t *= 0.5
-            else:
-                return x, f, False  # no descent along the arc
-            step, gain = np.abs(xn - x).max(), f - fn
-            x, f = xn, fn
-            if step <= 1e-9 or gain <= 1e-10 * max(1.0, f):  # Newton's gains shrink quadratically: this is the floor
-                return x, f, True
-        return x, f, False
-
-
-class _Evaluator:
-    """Calls a casadi Function on float64 arrays through its buffer: no DM conversions (the
-    Python call converts every argument and result, ~0.1 ms of a ~0.1 ms evaluation)."""
-
-    def __init__(self, fn: ca.Function):
-        self.args = [np.zeros(fn.nnz_in(i)) for i in range(fn.n_in())]
-        self.res = [np.zeros(fn.nnz_out(i)) for i in range(fn.n_out())]
-        self._buf, self._call = fn.buffer()
-        for i, a in enumerate(self.args):
-            self._buf.set_arg(i, memoryview(a))
-        for i, r in enumerate(self.res):
-            self._buf.set_res(i, memoryview(r))
-
-    def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
-        for a, v in zip(self.args, args):
-            a[:] = np.ravel(v)
-        self._call()
-        return self.res
-
-
-def _damped_solve(H: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """H^-1 g with H + mu I made positive definite (mu grown from 0 until Cholesky succeeds;
-    past 1e6 x the largest diagonal entry, the scaled gradient). LAPACK's potrf/potrs
-    directly: numpy's cholesky and two solves cost ten times the arithmetic at this size."""
-    mu, scale = 0.0, max(1e-8, float(np.abs(np.diag(H)).max(initial=0.0)))
-    while mu <= 1e6 * scale:
-        L, info = dpotrf(H + mu * np.eye(len(g)) if mu else H, lower=True, clean=False)
-        if info == 0:
-            return dpotrs(L, g, lower=True)[0]
-        mu = max(2.0 * mu, 1e-6 * scale)
-    return g / scale
 
 
 def _cayley_np(c: np.ndarray) -> np.ndarray:
