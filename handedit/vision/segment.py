@@ -41,7 +41,7 @@ against ``min_model_confidence`` (0.75, the paper's threshold).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar, Literal
+from typing import Callable, ClassVar, Literal
 
 import cv2
 import numpy as np
@@ -51,7 +51,7 @@ from handedit.keypoints import MCPS, N_JOINTS, PARENT, WRIST
 from handedit.metrics.similarity import bbox
 from handedit.vision.masks import disk, grow
 from handedit.reasons import STATUS_DTYPE, Reason, per_frame
-from handedit.vision.skin import SkinModel, colour_loglik, prior_rule, to_ycrcb
+from handedit.vision.skin import SkinModel, colour_gaussian, colour_loglik, prior_rule, to_ycrcb
 
 _TIP_JOINTS = frozenset((4, 8, 12, 16, 20))
 _UNKNOWN_STABILITY = 0.75  # stability term for a frame without usable neighbours
@@ -214,22 +214,28 @@ class _KpFrame:
     arm: np.ndarray | None = None  # (m,2) working px: wrist -> elbow -> ... when the source tracks the arm
 
 
-def _handlike(ycc: np.ndarray, sure: np.ndarray, hand_roi: np.ndarray, s: float) -> np.ndarray | None:
-    """Pixels whose colour looks like *this* hand's more than like its surroundings.
+def _handlike(ycc: np.ndarray, sure: np.ndarray, hand_roi: np.ndarray, s: float) -> Callable[[np.ndarray, np.ndarray], np.ndarray] | None:
+    """Whether pixels (rows, cols) look like *this* hand's colour more than its surroundings'.
 
     A 3-D YCrCb Gaussian of this frame's (skin-gated) seed pixels against one of the
     pixels around the hand's region: a skin-coloured table passes a chroma test but
-    usually differs in brightness or saturation, and this test sees that.
+    usually differs in brightness or saturation, and this test sees that. Evaluated only
+    at the pixels asked about (the candidate foreground, the forearm rays), not the frame.
     """
     ring = grow(hand_roi, 0.5 * s) & ~hand_roi
     if sure.sum() < 20 or ring.sum() < 20:
         return None
-    x = ycc.astype(np.float32)
+    hand, around = (colour_gaussian(ycc[m].astype(np.float32), 9.0) for m in (sure, ring))
 
-    return colour_loglik(x, x[sure], 9.0, np.float32) > colour_loglik(x, x[ring], 9.0, np.float32)
+    def at(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        x = ycc[rows, cols].astype(np.float32)
+        return colour_loglik(x, hand, dtype=np.float32) > colour_loglik(x, around, dtype=np.float32)
+
+    return at
 
 
-def _arm_direction(handlike: np.ndarray | None, kp: _KpFrame, cfg: SegmentConfig) -> np.ndarray | None:
+def _arm_direction(handlike: Callable[[np.ndarray, np.ndarray], np.ndarray] | None, kp: _KpFrame, cfg: SegmentConfig,
+                   shape: tuple[int, int]) -> np.ndarray | None:
     """Forearm direction measured in the image, or the keypoint guess when the image is unsure.
 
     Knuckles->wrist only approximates the forearm: a flexed wrist (any grasp) bends it by
@@ -240,7 +246,7 @@ def _arm_direction(handlike: np.ndarray | None, kp: _KpFrame, cfg: SegmentConfig
     if kp.forearm is None or handlike is None:
         return kp.forearm
     s = kp.scale
-    h, w = handlike.shape
+    h, w = shape
     base = np.arctan2(kp.forearm[1], kp.forearm[0])
     r = np.linspace(0.4 * s, 2.0 * s, 24)
     best, best_dir = -1.0, kp.forearm
@@ -251,7 +257,7 @@ def _arm_direction(handlike: np.ndarray | None, kp: _KpFrame, cfg: SegmentConfig
         if inside.sum() < 4:
             continue
         q = np.clip(np.round(p[inside]).astype(int), 0, [w - 1, h - 1])
-        score = float(handlike[q[:, 1], q[:, 0]].mean()) - 0.002 * abs(float(np.rad2deg(a)))
+        score = float(handlike(q[:, 1], q[:, 0]).mean()) - 0.002 * abs(float(np.rad2deg(a)))
         if score > best:
             best, best_dir = score, d
     return best_dir if best >= 0.5 else kp.forearm
@@ -298,7 +304,7 @@ def _segment_kp(bgr: np.ndarray, ycc: np.ndarray, prob: np.ndarray, kp: _KpFrame
     corridor = np.zeros(shape, np.uint8)
     handlike = _handlike(ycc, sure, roi, s)
     band = _arm_corridor(shape, kp, cfg)
-    arm_dir = kp.forearm if band is not None or cfg.arm_search_deg <= 0 else _arm_direction(handlike, kp, cfg)
+    arm_dir = kp.forearm if band is not None or cfg.arm_search_deg <= 0 else _arm_direction(handlike, kp, cfg, shape)
     if band is not None:
         roi |= band
     elif arm_dir is not None:
@@ -315,7 +321,9 @@ def _segment_kp(bgr: np.ndarray, ycc: np.ndarray, prob: np.ndarray, kp: _KpFrame
     init[likely & (prob >= 0.05)] = cv2.GC_PR_FGD
     if handlike is not None and cfg.colour_gate:
         # (this frame's hand colour, not just skin chroma: keeps a skin-coloured table out)
-        init[(init == cv2.GC_PR_FGD) & ~handlike] = cv2.GC_PR_BGD
+        ys, xs = np.nonzero(init == cv2.GC_PR_FGD)
+        other = ~handlike(ys, xs)
+        init[ys[other], xs[other]] = cv2.GC_PR_BGD
     colourless = np.zeros(shape, bool)  # the tracked arm's band: not gated by skin colour
     if band is not None:
         colourless = band & ~likely
