@@ -27,8 +27,9 @@ def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     targets = np.arange(job.start - lo, job.stop - lo)
     # every hand is removed (the union of the per-hand masks); composite pastes back hands it does not replace;
     # both scopes align on the background around the hands (the same homographies, fitted once)
-    result = restore(src["frames"], seg[mask_name].any(axis=1), targets, RestoreConfig(**job.params), frame_ok=usable,
-                     feature_masks=seg[features].any(axis=1))
+    removed = {name: seg[name].any(axis=1) for name in {mask_name, features}}  # one array when the scope is "hand"
+    result = restore(src["frames"], removed[mask_name], targets, RestoreConfig(**job.params), frame_ok=usable,
+                     feature_masks=removed[features])
     arrays = {"background": result.background, "filled_from_video": result.filled_from_video}
     return StageOutput(arrays, combine(result.status, usable[targets]), method=result.method)
 

@@ -314,7 +314,7 @@ def restore_background(
     m, H, W = frames.shape[:3]
     ok = np.ones(m, bool) if frame_ok is None else np.asarray(frame_ok, bool)
     holes = np.stack([_dilate(mk, cfg.dilate_px) for mk in masks]) if m else masks
-    if feature_masks is None:
+    if feature_masks is None or feature_masks is masks:  # (the hand scope passes its own masks)
         feature_holes = holes
     else:
         feature_masks = np.asarray(feature_masks, dtype=bool)

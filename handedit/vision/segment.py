@@ -51,7 +51,7 @@ from handedit.keypoints import MCPS, N_JOINTS, PARENT, WRIST
 from handedit.metrics.similarity import bbox
 from handedit.vision.masks import disk, grow
 from handedit.reasons import STATUS_DTYPE, Reason, per_frame
-from handedit.vision.skin import SkinModel, colour_gaussian, colour_loglik, prior_rule, to_ycrcb
+from handedit.vision.skin import SkinModel, colour_gaussian, gaussian_loglik, prior_rule, to_ycrcb
 
 _TIP_JOINTS = frozenset((4, 8, 12, 16, 20))
 _UNKNOWN_STABILITY = 0.75  # stability term for a frame without usable neighbours
@@ -273,7 +273,7 @@ def _handlike(ycc: np.ndarray, sure: np.ndarray, hand_roi: np.ndarray, s: float)
 
     def at(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         x = ycc[rows, cols].astype(np.float32)
-        return colour_loglik(x, hand, dtype=np.float32) > colour_loglik(x, around, dtype=np.float32)
+        return gaussian_loglik(x, hand, np.float32) > gaussian_loglik(x, around, np.float32)
 
     return at
 

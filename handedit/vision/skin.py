@@ -25,20 +25,25 @@ def to_ycrcb(rgb: np.ndarray) -> np.ndarray:
 
 def colour_gaussian(px: np.ndarray, floor: float) -> tuple[np.ndarray, np.ndarray, float]:
     """(mean, inverse covariance, log det covariance) of a 3-D Gaussian fitted to pixels
-    ``px`` (m,3), its covariance floored by ``floor`` x identity (``colour_loglik``)."""
+    ``px`` (m,3), its covariance floored by ``floor`` x identity (``colour_loglik``; fit once,
+    evaluate at many pixel sets with ``gaussian_loglik``)."""
     cov = np.cov(np.asarray(px).T) + np.eye(3) * floor
     return np.asarray(px).mean(0), np.linalg.inv(cov), float(np.log(np.linalg.det(cov)))
 
 
-def colour_loglik(x: np.ndarray, px: np.ndarray | tuple, floor: float = 0.0, dtype=np.float64) -> np.ndarray:
+def gaussian_loglik(x: np.ndarray, gaussian: tuple[np.ndarray, np.ndarray, float], dtype=np.float64) -> np.ndarray:
+    """Log-likelihood of colours ``x`` (...,3) under a fitted ``colour_gaussian``, in ``dtype``."""
+    mean, icov, logdet = gaussian
+    d = (x - mean).astype(dtype, copy=False)
+    return -0.5 * ((d @ icov.astype(dtype)) * d).sum(-1) - 0.5 * logdet
+
+
+def colour_loglik(x: np.ndarray, px: np.ndarray, floor: float, dtype=np.float64) -> np.ndarray:
     """Log-likelihood of colours ``x`` (...,3) under a 3-D Gaussian fitted to pixels ``px``
     (m,3), its covariance floored by ``floor`` x identity (a hand's own colour against its
     surroundings': the segmenter's colour gate, registration's hand probability, the
-    composite's residue test), evaluated in ``dtype``. ``px`` may be a fitted
-    ``colour_gaussian`` (evaluated at many pixel sets, fitted once)."""
-    mean, icov, logdet = px if isinstance(px, tuple) else colour_gaussian(px, floor)
-    d = (x - mean).astype(dtype, copy=False)
-    return -0.5 * ((d @ icov.astype(dtype)) * d).sum(-1) - 0.5 * logdet
+    composite's residue test), evaluated in ``dtype``."""
+    return gaussian_loglik(x, colour_gaussian(px, floor), dtype)
 
 
 def prior_rule(ycrcb: np.ndarray) -> np.ndarray:
