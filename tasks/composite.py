@@ -20,7 +20,7 @@ from handedit.storage import Unit, read_chunk
 from handedit.storage.layout import SCOPE_MASK
 from handedit.tasks._options import stage_options
 from handedit.tasks.common import ChunkJob, StageOutput, execute
-from handedit.vision.composite import CompositeConfig, composite as composite_frames
+from handedit.vision.composite import CompositeConfig, composite as composite_frames, robot_windows
 from handedit.vision.object_depth import object_occluder
 
 
@@ -35,23 +35,26 @@ def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     clip, emb, scope = job.unit.clip, job.unit.embodiment, job.context["scope"]
     a, b = job.start, job.stop
     bg = read_chunk(root, Unit("restore_background", clip, scope=scope), ["background", "status"], a, b)
-    ren = read_chunk(root, Unit("render", clip, embodiment=emb), ["rgba", "depth", "robot_side", "hand_status", "status"], a, b)
+    ren = read_chunk(root, Unit("render", clip, embodiment=emb), ["rgba", "robot_side", "hand_status", "status"], a, b)
     seg = read_chunk(root, Unit("segment", clip), [SCOPE_MASK[scope], "hand_status"], a, b)
     reg = read_chunk(root, Unit("registration", clip), ["keypoints", "keypoints_valid"], a, b)
     intr = Intrinsics(**job.context["intrinsics"])
     src = read_chunk(root, Unit("ingest", clip), ["frames"], a, b)
+    cfg = CompositeConfig(**job.params)
+    windows = robot_windows(ren["rgba"], cfg)
     occluder, occluder_depth = None, None
     if job.context.get("has_object"):
         obj = read_chunk(root, Unit("ingest", clip), ["object_mask", "object_pose"], a, b)
         vertices, faces = _object_mesh(job.context.get("source"))
         occluder, occluder_depth = object_occluder(
-            obj["object_mask"], vertices, faces, obj["object_pose"], intr
+            obj["object_mask"], vertices, faces, obj["object_pose"], intr, windows
         )
+    robot_depth = None if occluder_depth is None else read_chunk(root, Unit("render", clip, embodiment=emb), ["depth"], a, b)["depth"]
     ready = gate(bg["status"], ren["status"])
     replace = ready[:, None] & (ren["hand_status"] == Reason.OK)
-    result = composite_frames(bg["background"], ren["rgba"], ren["depth"], occluder, occluder_depth, CompositeConfig(**job.params),
+    result = composite_frames(bg["background"], ren["rgba"], robot_depth, occluder, occluder_depth, cfg,
                               robot_side=ren["robot_side"], replace=replace, source=src["frames"], human_mask=seg[SCOPE_MASK[scope]],
-                              keypoints_2d=project(reg["keypoints"], intr), keypoints_valid=reg["keypoints_valid"])
+                              keypoints_2d=project(reg["keypoints"], intr), keypoints_valid=reg["keypoints_valid"], windows=windows)
     upstream = ren["hand_status"]
     hand_status = np.where(replace, result.hand_status,
                            np.where(upstream == Reason.ABSENT, Reason.ABSENT, Reason.UPSTREAM)).astype(np.int16)

@@ -36,7 +36,7 @@ from handedit.vision.skin import colour_loglik
 
 
 class CompositeConfig(pydantic.BaseModel):
-    VERSION: ClassVar[int] = 1
+    VERSION: ClassVar[int] = 2  # 2: one blend (cv2.blendLinear, round-to-nearest), object depth only in the robot's window
     model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
 
     method: Literal["classical"] = "classical"
@@ -79,7 +79,7 @@ def _robot_depth_at_edges(depth: np.ndarray, alpha: np.ndarray) -> np.ndarray:
 
 
 def occlusion_mask(
-    robot_depth: np.ndarray,
+    robot_depth: np.ndarray | None,
     alpha: np.ndarray,
     occluder_mask: np.ndarray | None,
     occluder_depth: np.ndarray | None,
@@ -91,6 +91,8 @@ def occlusion_mask(
     occ = np.asarray(occluder_mask, bool)
     if occluder_depth is None:
         return occ.copy() if cfg.occluder_in_front_without_depth else np.zeros(alpha.shape, bool)
+    if robot_depth is None:
+        raise ValueError("composite: an occluder with depth needs the robot's depth")
     od = np.asarray(occluder_depth, np.float32)
     rd = _robot_depth_at_edges(np.asarray(robot_depth, np.float32), alpha)
     has_od = od > 0
@@ -140,9 +142,9 @@ def human_residue(image: np.ndarray, source: np.ndarray, human: np.ndarray, robo
         return cv2.cvtColor(np.ascontiguousarray(rgb.reshape(-1, 1, 3)), cv2.COLOR_RGB2YCrCb).reshape(-1, 3).astype(np.float32)
 
     hand_px = ycrcb(source[on_hand[:, 1], on_hand[:, 0]])
-    scene_px = ycrcb(source[ys, xs][ring])
-    rng = np.random.default_rng(0)
-    scene_px = scene_px[rng.choice(len(scene_px), min(len(scene_px), 4000), replace=False)]
+    ry, rx = np.nonzero(ring)
+    pick = np.random.default_rng(0).choice(len(ry), min(len(ry), 4000), replace=False)  # converted: only those drawn
+    scene_px = ycrcb(source[ys, xs][ry[pick], rx[pick]])
     out = q[~grown[q[:, 1], q[:, 0]] & ~robot[q[:, 1], q[:, 0]]]
     if not len(out):
         return 0.0
@@ -151,10 +153,18 @@ def human_residue(image: np.ndarray, source: np.ndarray, human: np.ndarray, robo
     return float(hand_like.sum() / len(q))
 
 
+def robot_windows(rgba: np.ndarray, cfg: CompositeConfig) -> list[tuple[slice, slice] | None]:
+    """Per frame, the box of every rendered pixel grown by the feather's reach (the radius of
+    cv2's float Gaussian kernel): all that compositing changes, and all of the occluder it
+    reads (the drawn sides' pixels are a subset); None where nothing is rendered."""
+    reach = max(1, (int(round(cfg.feather_px * 8 + 1)) | 1) // 2)
+    return [bbox(rgba[i, ..., 3] > 0, reach) for i in range(len(rgba))]
+
+
 def composite(
     background: np.ndarray,
     rgba: np.ndarray,
-    depth: np.ndarray,
+    depth: np.ndarray | None,
     occluder_mask: np.ndarray | None = None,
     occluder_depth: np.ndarray | None = None,
     cfg: CompositeConfig = CompositeConfig(),
@@ -165,21 +175,25 @@ def composite(
     human_mask: np.ndarray | None = None,
     keypoints_2d: np.ndarray | None = None,
     keypoints_valid: np.ndarray | None = None,
+    windows: list[tuple[slice, slice] | None] | None = None,
 ) -> CompositeResult:
     """Alpha-composite robot renders over backgrounds (arrays per frame along axis 0).
+
+    ``depth`` (n,H,W): the robot's, needed only with an ``occluder_depth`` (else None).
 
     ``robot_side`` (n,H,W) uint8: which hand's robot each rendered pixel is (0: none; None:
     one robot, side 0). ``replace`` (n,S) bool: sides whose robot is drawn (default: all).
     ``source`` (n,H,W,3) and ``human_mask`` (n,S,H,W): the source frames and each hand's
     human mask, for pasting back hands that are not replaced; ``keypoints_2d`` (n,S,21,2)
     and ``keypoints_valid`` (n,S,21): the registered joints, for the residue check.
+    ``windows``: ``robot_windows(rgba, cfg)`` when the caller has them already.
     """
     if cfg.method != "classical":
         raise ValueError(f"composite: unknown method {cfg.method!r}; this build has 'classical'")
     background = np.asarray(background)
     rgba = np.asarray(rgba)
     n, H, W = background.shape[:3]
-    if background.shape != (n, H, W, 3) or rgba.shape != (n, H, W, 4) or np.shape(depth) != (n, H, W):
+    if background.shape != (n, H, W, 3) or rgba.shape != (n, H, W, 4) or depth is not None and np.shape(depth) != (n, H, W):
         raise ValueError(
             f"composite: background (n,H,W,3), rgba (n,H,W,4), depth (n,H,W); got {background.shape}, {rgba.shape}, {np.shape(depth)}"
         )
@@ -190,6 +204,7 @@ def composite(
     robot_mask = np.zeros((n, S, H, W), bool)
     hs = np.where(replace, Reason.OK, Reason.UPSTREAM).astype(STATUS_DTYPE)
     residue = np.full((n, S), np.nan, np.float32)
+    windows = robot_windows(rgba, cfg) if windows is None else windows
     for i in range(n):
         bg = background[i]
         if human_mask is not None and source is not None and (~replace[i]).any():
@@ -204,36 +219,30 @@ def composite(
         img[...] = bg  # exactly the background wherever no robot contributes
         visible = np.zeros((H, W), bool)
         n_visible = np.zeros(S, np.int64)
-        # every rendered pixel's box, grown by the feather's reach (the radius of cv2's float
-        # Gaussian kernel), is all that changes: the drawn sides' pixels are a subset
-        win = bbox(rgba[i, ..., 3] > 0, max(1, (int(round(cfg.feather_px * 8 + 1)) | 1) // 2))
-        if win is not None:
-            ys, xs = win
+        if windows[i] is not None:
+            ys, xs = windows[i]
             alpha, side = rgba[i, ys, xs, 3], side_of[i][ys, xs]
-            drawn = np.isin(side, np.flatnonzero(replace[i]) + 1) & (alpha > 0)
-            a = np.where(drawn, alpha.astype(np.float32) / 255.0, 0.0).astype(np.float32)
+            drawn_side = np.zeros(256, bool)
+            drawn_side[np.flatnonzero(replace[i]) + 1] = True
+            a = np.where(drawn_side[side] & (alpha > 0), alpha * np.float32(1 / 255), np.float32(0))
             occ = occlusion_mask(
-                depth[i][ys, xs], a,
+                None if depth is None else depth[i][ys, xs], a,
                 None if occluder_mask is None else occluder_mask[i][ys, xs],
                 None if occluder_depth is None else occluder_depth[i][ys, xs],
                 cfg,
             )
-            vis = np.where(occ, 0.0, a).astype(np.float32)
+            vis = np.where(occ, np.float32(0), a)
             seen = vis >= 0.5
             visible[ys, xs] = seen
             for k in range(S):
                 robot_mask[i, k, ys, xs] = mine = seen & (side == k + 1)
                 n_visible[k] = np.count_nonzero(mine)
             soft = vis * cv2.GaussianBlur(vis, (0, 0), cfg.feather_px) if cfg.feather_px > 0 else vis
-            fg = rgba[i, ys, xs, :3].astype(np.float32)
+            fg = np.ascontiguousarray(rgba[i, ys, xs, :3])
             if cfg.premultiplied:  # un-premultiply so the feathered alpha applies to true colour
-                fg = np.where(a[..., None] > 0, fg / np.maximum(a[..., None], 1e-6), 0.0)
-            b = bg[ys, xs]
-            out = soft[..., None] * fg + (1.0 - soft[..., None]) * b.astype(np.float32)
-            patch = np.clip(np.round(out), 0, 255).astype(np.uint8)
-            keep_bg = soft <= 0  # incl. occluded pixels
-            patch[keep_bg] = b[keep_bg]
-            img[ys, xs] = patch
+                fg = np.clip(np.round(np.where(a[..., None] > 0, fg / np.maximum(a[..., None], 1e-6), 0)), 0, 255).astype(np.uint8)
+            # soft * fg + (1 - soft) * bg, rounded; exactly bg where soft is 0 (incl. occluded pixels)
+            img[ys, xs] = cv2.blendLinear(fg, np.ascontiguousarray(bg[ys, xs]), soft, 1 - soft)
         for k in np.flatnonzero(replace[i]):
             if n_visible[k] < cfg.min_visible_px:
                 hs[i, k] = Reason.EMPTY_RENDER

@@ -32,7 +32,7 @@ _MIN_STAT_PX = 200  # robot / ring pixels the subsampled statistics need
 
 
 class HarmonizeConfig(pydantic.BaseModel):
-    VERSION: ClassVar[int] = 4  # 3: ring and edge weight from one distance transform; 4: statistics on every other pixel
+    VERSION: ClassVar[int] = 5  # 3: ring and edge weight from one distance transform; 4: statistics on every other pixel; 5: one affine map and blend (round-to-nearest)
     model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
 
     method: Literal["classical", "onnx"] = "classical"
@@ -67,37 +67,39 @@ def _from_lab(lab: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(lab.astype(np.float32), cv2.COLOR_Lab2RGB) * 255.0
 
 
-def harmonize_frame(image: np.ndarray, robot_mask: np.ndarray, cfg: HarmonizeConfig) -> np.ndarray | None:
-    """One frame; None when the robot mask is empty. Works in the robot's box grown by the
-    ring (``handedit.metrics.similarity.bbox``), the whole frame only when the ring is too small."""
+def harmonize_frame(image: np.ndarray, robot_mask: np.ndarray, cfg: HarmonizeConfig, out: np.ndarray | None = None) -> np.ndarray | None:
+    """One frame, into ``out`` (a copy of ``image`` when None; ``image`` itself is fine); None
+    when the robot mask is empty. Works in the robot's box grown by the ring
+    (``handedit.metrics.similarity.bbox``), the whole frame only when the ring is too small."""
     mask = np.asarray(robot_mask, bool)
     win = bbox(mask, cfg.edge_px + cfg.ring_px + 1)
     if win is None:
         return None
-    out = image.copy()
-    done = _harmonize_in(image[win], mask[win], cfg, fallback_ok=False)
-    if done is None:  # too few ring pixels around the robot: the statistics come from the whole frame
-        return _harmonize_in(image, mask, cfg, fallback_ok=True)
-    out[win] = done
+    out = image.copy() if out is None else out
+    if not _harmonize_in(image[win], mask[win], cfg, False, out[win]):
+        # too few ring pixels around the robot: the statistics come from the whole frame
+        _harmonize_in(image, mask, cfg, True, out)
     return out
 
 
-def _harmonize_in(image: np.ndarray, mask: np.ndarray, cfg: HarmonizeConfig, fallback_ok: bool) -> np.ndarray | None:
-    """Dense over the window: one exact distance to the robot gives the dilated region, the
-    ring and the edge weight (a dilation by the ring's disk cost more than the rest together).
-    The statistics are masked ``cv2.meanStdDev`` on every other pixel (a quarter of the Lab
-    conversions; all pixels when that leaves fewer than ``_MIN_STAT_PX``), and the transfer
-    runs in the region's own box."""
+def _harmonize_in(image: np.ndarray, mask: np.ndarray, cfg: HarmonizeConfig, fallback_ok: bool, out: np.ndarray) -> bool:
+    """Dense over the window, written into ``out`` (False, nothing written, when the ring is
+    too small and ``fallback_ok`` is not set): one exact distance to the robot gives the
+    dilated region, the ring and the edge weight (a dilation by the ring's disk cost more
+    than the rest together). The statistics are masked ``cv2.meanStdDev`` on every other
+    pixel (a quarter of the Lab conversions; all pixels when that leaves fewer than
+    ``_MIN_STAT_PX``); the transfer is one affine map per pixel (``cv2.transform``) blended
+    by the edge weight, in the region's own box."""
     m8 = mask.astype(np.uint8)
     dist = cv2.distanceTransform(1 - m8, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     region = dist <= cfg.edge_px
     ring = (dist <= cfg.edge_px + cfg.ring_px) & ~region
     if cv2.countNonZero(ring.view(np.uint8)) < cfg.min_ring_px:
         if not fallback_ok:
-            return None
+            return False
         ring = ~region
     if not ring.any() or cfg.strength == 0:
-        return image.copy()
+        return True
     step = 2
     robot_s, ring_s = np.ascontiguousarray(m8[::step, ::step]), np.ascontiguousarray(ring[::step, ::step]).view(np.uint8)
     if min(cv2.countNonZero(robot_s), cv2.countNonZero(ring_s)) < _MIN_STAT_PX:
@@ -107,19 +109,21 @@ def _harmonize_in(image: np.ndarray, mask: np.ndarray, cfg: HarmonizeConfig, fal
     mu_r, sd_r = (v.ravel() for v in cv2.meanStdDev(lab_s, mask=ring_s))
     ratio = np.clip(sd_r / np.maximum(sd_s, 1e-3), *cfg.std_ratio_limits) if cfg.match_std else np.ones(3)
     k = cfg.strength
-    # Interpolate between identity and the full transfer, per channel.
-    scale = ((1 - k) + k * ratio).astype(np.float32)
-    target_mean = ((1 - k) * mu_s + k * mu_r).astype(np.float32)
+    # Interpolate between identity and the full transfer, per channel:
+    # new = (lab - mu_s) * scale + target_mean, i.e. lab * scale + (target_mean - mu_s * scale).
+    scale = (1 - k) + k * ratio
+    target_mean = (1 - k) * mu_s + k * mu_r
+    affine = np.concatenate([np.diag(scale), (target_mean - mu_s * scale)[:, None]], 1)
     box = bbox(region)
     lab = _to_lab(image[box])
-    new = (lab - mu_s.astype(np.float32)) * scale + target_mean
+    new = cv2.transform(lab, affine)
     np.clip(new[..., 0], 0, 100, out=new[..., 0])
     # Weight: 1 on the robot, fading to 0 across the dilation band (no visible seam).
     w = np.clip(1.0 - dist[box] / (cfg.edge_px + 1.0), 0.0, 1.0) if cfg.edge_px > 0 else m8[box].astype(np.float32)
-    rgb = _from_lab(lab + w[..., None] * (new - lab))
-    out = image.copy()
-    np.copyto(out[box], np.clip(np.round(rgb), 0, 255).astype(np.uint8), where=region[box][..., None])
-    return out
+    rgb = _from_lab(cv2.blendLinear(new, lab, w, 1 - w))
+    np.maximum(rgb, 0, out=rgb)
+    np.copyto(out[box], cv2.convertScaleAbs(rgb), where=region[box][..., None])  # rounded, saturated at 255
+    return True
 
 
 def harmonize(image: np.ndarray, robot_mask: np.ndarray, cfg: HarmonizeConfig = HarmonizeConfig()) -> HarmonizeResult:
@@ -138,10 +142,10 @@ def harmonize(image: np.ndarray, robot_mask: np.ndarray, cfg: HarmonizeConfig = 
     for i in range(len(image)):
         if model is not None:
             res = harmonize_onnx_frame(model, image[i], robot_mask[i], cfg) if robot_mask[i].any() else None
+            if res is not None:
+                out[i] = res
         else:
-            res = harmonize_frame(image[i], robot_mask[i], cfg)
+            res = harmonize_frame(image[i], robot_mask[i], cfg, out=out[i])  # in place
         if res is None:
             status[i] = Reason.EMPTY_RENDER
-        else:
-            out[i] = res
     return HarmonizeResult(out, status, f"onnx:harmonizer:{model.tag}" if model is not None else "classical:lab-stats-transfer")
