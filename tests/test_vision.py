@@ -216,10 +216,11 @@ def test_segment_real_video(real_video):
 # background restoration
 
 
-def test_restore_background_propagation_beats_inpainting():
+@pytest.mark.parametrize("fit", ["usac_fast", "ransac"])
+def test_restore_background_propagation_beats_inpainting(fit):
     frames, bgs, arms = _panning_scene()
     t = 4
-    cfg = RestoreConfig()
+    cfg = RestoreConfig(homography_fit=fit)
     r = restore_background(frames, arms, np.array([t]), cfg)
     assert r.background.shape == (1,) + frames.shape[1:] and r.status[0] == Reason.OK
     assert r.method.startswith("classical:propagate-homography")
@@ -254,6 +255,29 @@ def test_restore_scopes_share_their_homographies(monkeypatch):
     np.testing.assert_array_equal(shared.background, alone.background)
     with pytest.raises(ValueError, match="feature_masks"):
         rb.restore_background(frames, arms, targets, RestoreConfig(), feature_masks=hands[:2])
+
+
+def test_restore_matches_are_shared_between_directions():
+    """j -> t and t -> j share one mutual matching (and every frame one detection, for the
+    process): what the reverse direction gets is exactly what OpenCV's cross-checked
+    matcher returns for it."""
+    import importlib
+
+    rb = importlib.import_module("handedit.vision.restore_background")
+    frames, bgs, arms = _panning_scene(n=5)
+    holes = np.stack([_dilate(a, 6) for a in arms])
+    rb._MATCHED.clear()
+    feats = rb._Features(frames, holes, 640)
+    forward = feats.matches(0, 3)
+    assert len(rb._MATCHED) == 1 and len(forward[0]) >= 20
+    backward = feats.matches(3, 0)
+    assert len(rb._MATCHED) == 1  # no second matching
+    want = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(feats.get(3)[1], feats.get(0)[1])
+    np.testing.assert_array_equal(backward[0], [m.queryIdx for m in want])
+    np.testing.assert_array_equal(backward[1], [m.trainIdx for m in want])
+    again = rb._Features(frames, holes, 640)  # the next chunk's window: the same frames are not detected again
+    again.orb = type("NoDetect", (), {"detectAndCompute": lambda *a: pytest.fail("detected again")})()
+    assert again.get(3)[0] is feats.get(3)[0]
 
 
 def test_restore_background_without_other_frames_inpaints():
