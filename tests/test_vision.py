@@ -495,11 +495,13 @@ def test_restore_median_of_seen_candidates_is_nanmedian():
     from handedit.vision.restore_background import _median_seen
 
     rng = np.random.default_rng(2)
-    C = rng.integers(0, 255, (7, 400, 3)).astype(np.float32)
-    V = rng.random((7, 400)) < 0.5
-    V[:3] = True  # the caller's case: at least 3 frames saw each pixel
-    want = np.nanmedian(np.where(V[..., None], C, np.nan), axis=0)
-    np.testing.assert_array_equal(_median_seen(C, V), want)
+    for k in range(3, 10):  # every sorting network up to past max_sources (8)
+        C = (rng.random((k, 400, 3)) * 255).astype(np.float32)
+        C[:, :50] = np.round(C[:, :50] / 64) * 64  # and ties
+        V = rng.random((k, 400)) < 0.5
+        V[rng.permutation(k)[:3]] = True  # the caller's case: at least 3 frames saw each pixel (any 3)
+        want = np.nanmedian(np.where(V[..., None], C, np.nan), axis=0)
+        np.testing.assert_array_equal(_median_seen(C, V), want)
 
 
 def test_restore_box_warps_and_histogram_median_are_the_full_frame_ones():
