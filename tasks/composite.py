@@ -54,7 +54,8 @@ def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     replace = ready[:, None] & (ren["hand_status"] == Reason.OK)
     result = composite_frames(bg["background"], ren["rgba"], robot_depth, occluder, occluder_depth, cfg,
                               robot_side=ren["robot_side"], replace=replace, source=src["frames"], human_mask=seg[SCOPE_MASK[scope]],
-                              keypoints_2d=project(reg["keypoints"], intr), keypoints_valid=reg["keypoints_valid"], windows=windows)
+                              keypoints_2d=project(reg["keypoints"], intr), keypoints_valid=reg["keypoints_valid"], windows=windows,
+                              out=bg["background"])  # read for this chunk only: composited in place
     upstream = ren["hand_status"]
     hand_status = np.where(replace, result.hand_status,
                            np.where(upstream == Reason.ABSENT, Reason.ABSENT, Reason.UPSTREAM)).astype(np.int16)

@@ -14,7 +14,8 @@ from handedit.tasks.common import ChunkJob, StageOutput, execute
 
 def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     comp = read_chunk(root, Unit("composite", job.unit.clip, embodiment=job.unit.embodiment), ["image", "robot_mask", "status"], job.start, job.stop)
-    result = harmonize_frames(comp["image"], comp["robot_mask"].any(axis=1), HarmonizeConfig(**job.params))
+    result = harmonize_frames(comp["image"], comp["robot_mask"].any(axis=1), HarmonizeConfig(**job.params),
+                              out=comp["image"])  # read for this chunk only: harmonized in place
     return StageOutput({"image": result.image}, combine(result.status, gate(comp["status"])), method=result.method)
 
 

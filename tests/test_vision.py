@@ -343,6 +343,31 @@ def test_composite_occluder_in_front_keeps_background_exactly():
     assert r.status[0] == Reason.OK and r.robot_mask.sum() == (depth > 0).sum() - overlap.sum()
 
 
+def test_composite_and_harmonize_in_place_match_their_copies():
+    """The tasks composite into the background they read, and harmonize the composite they
+    read, in place: the same images as into new arrays (and a kept hand's paste-back too)."""
+    bg, rgba, depth, occ = _robot_layers(n=2)
+    side = np.where(rgba[..., 3] > 0, 1, 0).astype(np.uint8)
+    side[1, :, 40:] *= 2  # frame 1: a second robot, whose side is not replaced
+    human = np.zeros((2, 2, *occ.shape[1:]), bool)
+    human[:, :, 22:38, 22:58] = True
+    replace = np.array([[True, True], [True, False]])
+    src = np.full_like(bg, 77)
+    kw = dict(robot_side=side, replace=replace, source=src, human_mask=human)
+    want = composite(bg, rgba, depth, occ, np.where(occ, 0.3, 0.0).astype(np.float32), **kw)
+    mine = bg.copy()
+    got = composite(mine, rgba, depth, occ, np.where(occ, 0.3, 0.0).astype(np.float32), out=mine, **kw)
+    assert got.image is mine
+    np.testing.assert_array_equal(got.image, want.image)
+    np.testing.assert_array_equal(got.robot_mask, want.robot_mask)
+    assert (want.image[1][human[1, 1]] == 77).any()  # the kept hand came back
+    h_want = harmonize(want.image, want.union)
+    image = want.image.copy()
+    h_got = harmonize(image, want.union, out=image)
+    assert h_got.image is image and not np.array_equal(h_want.image, want.image)
+    np.testing.assert_array_equal(h_got.image, h_want.image)
+
+
 def test_composite_occluder_behind_and_mask_only():
     bg, rgba, depth, occ = _robot_layers()
     behind = composite(bg, rgba, depth, occ, np.where(occ, 0.9, 0.0).astype(np.float32))

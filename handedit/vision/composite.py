@@ -176,6 +176,7 @@ def composite(
     keypoints_2d: np.ndarray | None = None,
     keypoints_valid: np.ndarray | None = None,
     windows: list[tuple[slice, slice] | None] | None = None,
+    out: np.ndarray | None = None,
 ) -> CompositeResult:
     """Alpha-composite robot renders over backgrounds (arrays per frame along axis 0).
 
@@ -186,7 +187,8 @@ def composite(
     ``source`` (n,H,W,3) and ``human_mask`` (n,S,H,W): the source frames and each hand's
     human mask, for pasting back hands that are not replaced; ``keypoints_2d`` (n,S,21,2)
     and ``keypoints_valid`` (n,S,21): the registered joints, for the residue check.
-    ``windows``: ``robot_windows(rgba, cfg)`` when the caller has them already.
+    ``windows``: ``robot_windows(rgba, cfg)`` when the caller has them already. ``out``: where
+    the composites go (may be ``background`` itself, which is then overwritten: no copy).
     """
     if cfg.method != "classical":
         raise ValueError(f"composite: unknown method {cfg.method!r}; this build has 'classical'")
@@ -200,7 +202,7 @@ def composite(
     S = replace.shape[1] if replace is not None else (human_mask.shape[1] if human_mask is not None else 1)
     replace = np.ones((n, S), bool) if replace is None else np.asarray(replace, bool)
     side_of = np.where(rgba[..., 3] > 0, 1, 0).astype(np.uint8) if robot_side is None else np.asarray(robot_side)
-    image = np.empty_like(background)
+    image = np.empty_like(background) if out is None else out
     robot_mask = np.zeros((n, S, H, W), bool)
     hs = np.where(replace, Reason.OK, Reason.UPSTREAM).astype(STATUS_DTYPE)
     residue = np.full((n, S), np.nan, np.float32)
@@ -216,7 +218,8 @@ def composite(
                 bg = bg.copy()
                 bg[keep] = source[i][keep]
         img = image[i]
-        img[...] = bg  # exactly the background wherever no robot contributes
+        if not np.may_share_memory(img, bg):
+            img[...] = bg  # exactly the background wherever no robot contributes
         visible = np.zeros((H, W), bool)
         n_visible = np.zeros(S, np.int64)
         if windows[i] is not None:

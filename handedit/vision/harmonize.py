@@ -126,13 +126,18 @@ def _harmonize_in(image: np.ndarray, mask: np.ndarray, cfg: HarmonizeConfig, fal
     return True
 
 
-def harmonize(image: np.ndarray, robot_mask: np.ndarray, cfg: HarmonizeConfig = HarmonizeConfig()) -> HarmonizeResult:
-    """Harmonize composites (n,H,W,3) uint8 given visible robot masks (n,H,W) bool."""
+def harmonize(image: np.ndarray, robot_mask: np.ndarray, cfg: HarmonizeConfig = HarmonizeConfig(),
+              out: np.ndarray | None = None) -> HarmonizeResult:
+    """Harmonize composites (n,H,W,3) uint8 given visible robot masks (n,H,W) bool, into
+    ``out`` (a copy of ``image`` when None; ``image`` itself is fine: harmonized in place)."""
     image = np.asarray(image)
     robot_mask = np.asarray(robot_mask, bool)
     if image.ndim != 4 or image.shape[-1] != 3 or robot_mask.shape != image.shape[:3]:
         raise ValueError(f"harmonize: image (n,H,W,3) and robot_mask (n,H,W); got {image.shape}, {robot_mask.shape}")
-    out = image.copy()
+    if out is None:
+        out = image.copy()
+    elif out is not image:
+        out[...] = image
     status = np.full(len(image), Reason.OK, STATUS_DTYPE)
     model = None
     if cfg.method == "onnx":
