@@ -90,11 +90,10 @@ class _Features:
     """ORB features per frame on its visible background, the mutual matches between two
     frames and the homographies between them, each computed once (the ghosting check reuses
     the propagation's) and kept for the process (``_DETECTED``, ``_MATCHED``, ``_FITTED``),
-    keyed by the content of the feature images: the hand and
-    hand-arm scopes detect features on the same background (``feature_masks``), so the
-    second scope fits none again, and the next chunk's window detects none on the frames it
-    shares with this one. Mutual (cross-checked) matches are symmetric, so j -> t and t -> j
-    share one matching."""
+    keyed by the content of the feature images: the hand and hand-arm scopes detect features
+    on the same background (``feature_masks``), so the second scope fits none again, and the
+    next chunk's window detects none on the frames it shares with this one. Mutual
+    (cross-checked) matches are symmetric, so j -> t and t -> j share one matching."""
 
     def __init__(self, frames: np.ndarray, holes: np.ndarray, max_side: int):
         self.frames, self.holes = frames, holes
@@ -407,7 +406,8 @@ def restore_background(
         if not hole.any():
             continue
         # the hole and its gain ring: the only pixels warped in colour (the alignment check
-        # samples every align_check_step-th pixel of the frame, warped straight onto that grid, in grey)
+        # samples every align_check_step-th pixel of the frame, warped straight onto that
+        # grid, in grey)
         win = bbox(hole, 25)
         ring = (_dilate(hole, 25) & ~hole)[win]
         hy, hx = np.nonzero(hole[win])
