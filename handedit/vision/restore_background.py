@@ -25,6 +25,7 @@ from __future__ import annotations
 import hashlib
 from collections import OrderedDict
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import ClassVar, Literal
 
 import cv2
@@ -223,7 +224,8 @@ def _sources(t: int, m: int, cfg: RestoreConfig) -> list[int]:
     return sorted(cand, key=lambda j: (abs(j - t), j))
 
 
-def _sorting_network(k: int) -> list[tuple[int, int]]:
+@lru_cache(maxsize=None)
+def _sorting_network(k: int) -> tuple[tuple[int, int], ...]:
     """Batcher's odd-even merge sort: the compare-exchanges (a < b) that sort any k values."""
     n = 1 << max(0, (k - 1).bit_length())
     pairs, p = [], 1
@@ -236,7 +238,7 @@ def _sorting_network(k: int) -> list[tuple[int, int]]:
                         pairs.append((i + j, i + j + d))
             d //= 2
         p *= 2
-    return [(a, b) for a, b in pairs if b < k]  # the padding sorts last: its exchanges never move a value
+    return tuple((a, b) for a, b in pairs if b < k)  # the padding sorts last: its exchanges never move a value
 
 
 def _median_seen(C: np.ndarray, V: np.ndarray) -> np.ndarray:
