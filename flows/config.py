@@ -180,6 +180,8 @@ class CurateConfig(BaseModel):
     take_over: bool = Field(False, description="claim shards even when another driver's claim looks live")
     check_skipped_shards: bool = Field(True, description="before skipping a complete shard, list its clips' chunk "
                                        "objects (one listing per clip) and re-run it if any is missing")
+    handoff_mib: int = Field(512, ge=0, description="chunks a task wrote, kept in memory (up to this many MiB per task) "
+                             "for its own later stages that read them (storage.handoff); 0: every read decodes the store")
     estimate_hands: EstimateHandsConfig = EstimateHandsConfig()
     registration: RegistrationConfig = RegistrationConfig()
     segment: SegmentConfig = SegmentConfig()

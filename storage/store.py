@@ -19,6 +19,7 @@ import numpy as np
 import zarr
 from zarr.codecs import BloscCodec, BloscShuffle
 
+from handedit.storage import handoff
 from handedit.storage.layout import (ARRAYS, PREVIEW_CANDIDATES, PREVIEW_FRAMES, SCHEMA_VERSION, ArraySpec, Unit, arrays_for,
                             preview_path)
 
@@ -270,6 +271,7 @@ def write_chunk(root: zarr.Group, unit: Unit, start: int, arrays: Mapping[str, n
     """
     group = root[unit.path]
     digests: dict[str, str] = {}
+    written: dict[str, np.ndarray] = {}
     for name, value in arrays.items():
         if name not in group:
             raise KeyError(f"{unit.label} has no array {name!r}; schema: {[a.name for a in ARRAYS[unit.stage]]}")
@@ -286,6 +288,10 @@ def write_chunk(root: zarr.Group, unit: Unit, start: int, arrays: Mapping[str, n
             _delete_objects(target, start, stop)  # its bytes are garbage: this chunk replaces them whole
             target[start:stop] = value
         digests[name] = digest(value)
+        written[name] = value
+    kept = handoff.current()
+    if kept is not None:  # stored whole: the walk's later readers of this chunk may take it from memory
+        kept.keep(root.store, unit.path, start, written)
     return digests
 
 
@@ -299,8 +305,16 @@ def _delete_objects(array: zarr.Array, start: int, stop: int) -> None:
 
 
 def read_chunk(root: zarr.Group, unit: Unit, names: Iterable[str], start: int, stop: int) -> dict[str, np.ndarray]:
-    group = root[unit.path]
-    return {name: read_array(group[name], slice(start, stop)) for name in names}
+    """Frames [start, stop) of each named array (from memory where this walk just wrote
+    them, ``storage.handoff``)."""
+    kept, out, group = handoff.current(), {}, None
+    for name in names:
+        value = None if kept is None else kept.get(root.store, unit.path, name, start, stop)
+        if value is None:
+            group = root[unit.path] if group is None else group
+            value = read_array(group[name], slice(start, stop))
+        out[name] = value
+    return out
 
 
 def has_array(root: zarr.Group, unit: Unit, name: str) -> bool:

@@ -27,6 +27,7 @@ import fnmatch
 import heapq
 import json
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 
 from prefect import task
@@ -34,6 +35,7 @@ from prefect import task
 from handedit.reasons import Reason
 from handedit.storage import Unit, create_unit, read_records, write_records
 from handedit.storage.integrity import missing_objects, stored_objects
+from handedit.storage.handoff import Handoff, handing_over
 from handedit.storage.layout import STAGES
 from handedit.storage.location import location_of
 from handedit.storage.provenance import ChunkRecord, drop_records, is_current, provenance_key
@@ -119,7 +121,7 @@ def _faulty(config, unit: Unit) -> bool:
 
 
 def walk(nodes, stage_params, records: dict, run_node, on_record, result: WalkResult, faulty=lambda unit: False,
-         prefail=None, missing=None) -> WalkResult:
+         prefail=None, missing=None, finished=lambda node: None) -> WalkResult:
     """Run chunk nodes in streaming dependency order, skipping current ones (pure: no store).
 
     ``stage_params(stage) -> (version, params)``; ``records``: (unit, chunk) -> record of
@@ -128,7 +130,8 @@ def walk(nodes, stage_params, records: dict, run_node, on_record, result: WalkRe
     (a record with ``outcome="error"`` counts as failed); ``prefail(node, ...)`` may return
     a failure record instead of running it; ``on_record(node, record)`` persists a new record;
     ``missing(node, record) -> [object keys]`` names stored outputs a current record vouches
-    for that are gone: such a chunk is recomputed, and noted in ``result.recovered``.
+    for that are gone: such a chunk is recomputed, and noted in ``result.recovered``;
+    ``finished(node)`` follows every node, run or skipped.
     """
     from handedit.flows.dag import node_inputs
 
@@ -141,6 +144,7 @@ def walk(nodes, stage_params, records: dict, run_node, on_record, result: WalkRe
             gone = missing(node, records[node.id]) if missing is not None else []
             if not gone:
                 result.count(node.unit.stage, "skipped")
+                finished(node)
                 continue
             note = f"{node.unit.label}#{node.chunk}: recomputed, its stored data was missing ({', '.join(gone[:3])})"
             result.recovered.append(note)
@@ -154,6 +158,7 @@ def walk(nodes, stage_params, records: dict, run_node, on_record, result: WalkRe
         result.count(node.unit.stage, "failed" if record.get("outcome") == "error" else "ran")
         on_record(node, record)
         records[node.id] = record
+        finished(node)
     return result
 
 
@@ -192,9 +197,19 @@ def _walk_store(root, store: str, nodes, config, code_version: str, result: Walk
             corrupt.update(_owned_chunk(record["corrupt"], own, config.frames_per_chunk))
         return record
 
+    starts = {n.id: n.start for n in nodes}  # the chunks this walk writes
+
     def run(into: WalkResult) -> WalkResult:
-        return walk(nodes, params.__getitem__, records, run_noting, lambda n, r: write_records(root, n.unit, [ChunkRecord.from_json(r)]),
-                    into, faulty=lambda u: _faulty(config, u), prefail=pre, missing=missing)
+        kept = _handoff(root, nodes, starts, config.handoff_mib)
+
+        def finished(node) -> None:
+            if kept is not None:
+                kept.done(_own_reads(node, starts))
+
+        with handing_over(kept):
+            return walk(nodes, params.__getitem__, records, run_noting,
+                        lambda n, r: write_records(root, n.unit, [ChunkRecord.from_json(r)]), into,
+                        faulty=lambda u: _faulty(config, u), prefail=pre, missing=missing, finished=finished)
 
     run(result)
     if corrupt:  # a corrupt chunk this task owns: recompute it, then the chunks that failed reading it
@@ -214,6 +229,27 @@ def _walk_store(root, store: str, nodes, config, code_version: str, result: Walk
         result.errors = [e for e in result.errors if "CorruptChunk" not in e] + again.errors
         result.recovered += again.recovered
     return result
+
+
+def _own_reads(node, starts: dict) -> list[tuple[str, int]]:
+    """(unit path, start frame) of each chunk ``node`` reads that its own walk writes."""
+    return [(d.unit.path, starts[(d.unit, d.chunk)]) for d in node.deps if (d.unit, d.chunk) in starts]
+
+
+def _handoff(root, nodes, starts: dict, budget_mib: int) -> Handoff | None:
+    """The walk's hand-over (``storage.handoff``): which of its chunks its nodes read, and
+    which arrays of them."""
+    if budget_mib <= 0:
+        return None
+    readers: Counter = Counter()
+    names: dict = {}
+    for n in nodes:
+        for d in n.deps:
+            if (d.unit, d.chunk) in starts:
+                key = (d.unit.path, starts[(d.unit, d.chunk)])
+                readers[key] += 1
+                names.setdefault(key, set()).update(d.arrays)
+    return Handoff(root.store, readers, names, budget_mib << 20)
 
 
 def _owned_chunk(corrupt: dict, units, f: int) -> list:

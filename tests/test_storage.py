@@ -161,3 +161,94 @@ def test_recreated_array_drops_provenance(root):
     assert read_records(root, unit)
     create_unit(root, unit, 8, {"dof": 22, "S": 1}, F)  # new DoF: empty array, nothing is current
     assert root[unit.path]["qpos"].shape == (8, 1, 22) and read_records(root, unit) == {}
+
+
+def test_handoff_serves_what_was_written_until_its_last_reader(root):
+    """storage.handoff: a written chunk a later node reads is served from memory, as a copy,
+    only while it has readers, only for the walk's own store and within the budget."""
+    from handedit.storage.handoff import Handoff, handing_over
+
+    unit = Unit("segment", "c1")
+    create_unit(root, unit, 8, {"H": 4, "W": 4, "S": 1}, F)
+    a = np.random.default_rng(0).random((4, 1), np.float32)
+    b = np.random.default_rng(1).random((4, 1), np.float32)
+    kept = Handoff(root.store, {(unit.path, 0): 1, (unit.path, 4): 2}, {(unit.path, 0): {"confidence"},
+                                                                          (unit.path, 4): {"confidence"}}, 1 << 20)
+    with handing_over(kept):
+        write_chunk(root, unit, 0, {"confidence": a, "hand_status": np.zeros((4, 1), np.int16)})
+        write_chunk(root, unit, 4, {"confidence": b})
+        got = read_chunk(root, unit, ["confidence"], 2, 7)["confidence"]  # spans both kept chunks
+        assert np.array_equal(got, np.concatenate([a, b])[2:7]) and kept.served == 1
+        got[:] = -1  # a copy: writing into it changes nothing kept
+        assert np.array_equal(read_chunk(root, unit, ["confidence"], 0, 4)["confidence"], a)
+        # an array no reader named was not kept: read from the store
+        assert kept.get(root.store, unit.path, "hand_status", 0, 4) is None
+        assert kept.get(object(), unit.path, "confidence", 0, 4) is None  # another store
+        kept.done([(unit.path, 0)])  # chunk 0's only reader ran: dropped, chunk 4 still held
+        assert kept.get(root.store, unit.path, "confidence", 0, 4) is None
+        assert np.array_equal(kept.get(root.store, unit.path, "confidence", 4, 8), b)
+        kept.done([(unit.path, 4), (unit.path, 4)])
+        assert kept.nbytes == 0 and not kept.kept[unit.path]
+        served = kept.served
+        assert np.array_equal(read_chunk(root, unit, ["confidence"], 0, 8)["confidence"], np.concatenate([a, b]))
+        assert kept.served == served  # from the store
+    tight = Handoff(root.store, {(unit.path, 0): 1}, {(unit.path, 0): {"confidence"}}, a.nbytes - 1)
+    with handing_over(tight):  # over the budget: not kept
+        write_chunk(root, unit, 0, {"confidence": a})
+        assert tight.nbytes == 0 and tight.get(root.store, unit.path, "confidence", 0, 4) is None
+
+
+def test_walks_hand_over_their_chunks_and_store_the_same_data(tmp_path, monkeypatch, robots_dir):
+    """A clip's and its embodiments' walks (the task bodies, hand and hand-arm) with the
+    hand-over equal the same walks decoding every read: array for array, digest for digest;
+    and with it, no stage reads back from the store what its own walk wrote."""
+    from dataclasses import asdict
+
+    import handedit.storage.store as store_mod
+    from handedit.flows.config import CurateConfig
+    from handedit.flows.curate import code_version, plan_embodiments
+    from handedit.sources.synthetic import make_clip_specs
+    from handedit.storage import Location
+    from handedit.storage.ledger import iter_units
+    from handedit.tasks.clip import ClipJob, EmbodimentJob, run_clip, run_embodiment
+
+    monkeypatch.setenv("HANDEDIT_ASSET_DIRS", str(robots_dir))  # the hand-arm robot's meshes
+    spec = make_clip_specs(1, seed=5, n_frames=8, width=96, height=72)[0]
+    read_paths: list[str] = []
+    real_read = store_mod.read_array
+    monkeypatch.setattr(store_mod, "read_array", lambda a, sel=slice(None): read_paths.append(a.path) or real_read(a, sel))
+
+    def curate(out, mib: int):
+        cfg = CurateConfig(out=str(out), clips=[spec], embodiments=["allegro", "xarm_ability"], frames_per_chunk=4,
+                           handoff_mib=mib)
+        loc = Location(cfg.out)
+        create_or_open_store(loc, cfg.frames_per_chunk, "test")
+        embs = [asdict(e) for e in plan_embodiments(cfg.embodiments)]
+        scopes = tuple(sorted({e["scope"] for e in embs}))
+        read_paths.clear()
+        assert not run_clip(ClipJob(loc.store_url, spec.model_dump_json(), cfg.model_dump_json(), scopes, code_version()))["errors"]
+        clip_reads = list(read_paths)
+        emb_reads = []
+        for e in embs:
+            read_paths.clear()
+            result = run_embodiment(EmbodimentJob(loc.store_url, spec.id, e, cfg.model_dump_json(), code_version()))
+            assert not result["errors"] and all(not c["failed"] for c in result["stages"].values()), result
+            emb_reads += read_paths
+        return open_store(loc.store_url), clip_reads, emb_reads
+
+    kept, clip_reads, emb_reads = curate(tmp_path / "kept", 512)
+    plain, plain_clip_reads, plain_emb_reads = curate(tmp_path / "plain", 0)
+    def of(paths: list[str], stages: tuple[str, ...]) -> list[str]:  # reads of these stages' units
+        units = {Unit(s, spec.id, embodiment=e).path for s in stages for e in (None, "allegro", "xarm_ability")
+                 if (e is None) == (s in ("ingest", "registration", "segment"))}
+        return [p for p in paths if p.rsplit("/", 1)[0] in units]
+
+    clip_own, emb_own = ("ingest", "registration", "segment"), ("retarget", "render", "composite", "harmonize")
+    assert of(plain_clip_reads, clip_own) and of(plain_emb_reads, emb_own)
+    assert not of(clip_reads, clip_own) and not of(emb_reads, emb_own)
+    for unit in iter_units(plain):
+        for name in plain[unit.path].array_keys():
+            if not name.startswith("previews"):
+                np.testing.assert_array_equal(kept[unit.path][name][:], plain[unit.path][name][:], err_msg=f"{unit.path}/{name}")
+        a, b = read_records(kept, unit), read_records(plain, unit)
+        assert {k: r.outputs for k, r in a.items()} == {k: r.outputs for k, r in b.items()} and a

@@ -60,7 +60,18 @@ class HarmonizeResult:
 
 
 def _to_lab(rgb: np.ndarray) -> np.ndarray:
-    return cv2.cvtColor(rgb.astype(np.float32) / 255.0, cv2.COLOR_RGB2Lab)
+    return cv2.cvtColor(np.divide(rgb, np.float32(255), dtype=np.float32), cv2.COLOR_RGB2Lab)
+
+
+def _pixels(rgb: np.ndarray) -> np.ndarray:
+    """(h,w,3) uint8 as (h,w) 3-byte items (a view): a masked gather or scatter moves whole
+    pixels, four times faster than numpy's per-channel indexing."""
+    return rgb.view(np.dtype("V3"))[..., 0]
+
+
+def _rgb(pixels: np.ndarray) -> np.ndarray:
+    """(N,) gathered pixels as a (1,N,3) uint8 row (one row: OpenCV's per-row cost once)."""
+    return pixels.view(np.uint8).reshape(1, -1, 3)
 
 
 def _from_lab(lab: np.ndarray) -> np.ndarray:
@@ -101,12 +112,12 @@ def _harmonize_in(image: np.ndarray, mask: np.ndarray, cfg: HarmonizeConfig, fal
     if not ring.any() or cfg.strength == 0:
         return True
     step = 2
-    robot_s, ring_s = np.ascontiguousarray(m8[::step, ::step]), np.ascontiguousarray(ring[::step, ::step]).view(np.uint8)
-    if min(cv2.countNonZero(robot_s), cv2.countNonZero(ring_s)) < _MIN_STAT_PX:
-        step, robot_s, ring_s = 1, m8, ring.view(np.uint8)
-    lab_s = _to_lab(np.ascontiguousarray(image[::step, ::step]))
-    mu_s, sd_s = (v.ravel() for v in cv2.meanStdDev(lab_s, mask=robot_s))
-    mu_r, sd_r = (v.ravel() for v in cv2.meanStdDev(lab_s, mask=ring_s))
+    robot_s, ring_s = mask[::step, ::step], ring[::step, ::step]
+    if min(np.count_nonzero(robot_s), np.count_nonzero(ring_s)) < _MIN_STAT_PX:
+        step, robot_s, ring_s = 1, mask, ring
+    sub = _pixels(image[::step, ::step])
+    mu_s, sd_s = (v.ravel() for v in cv2.meanStdDev(_to_lab(_rgb(sub[robot_s]))))
+    mu_r, sd_r = (v.ravel() for v in cv2.meanStdDev(_to_lab(_rgb(sub[ring_s]))))
     ratio = np.clip(sd_r / np.maximum(sd_s, 1e-3), *cfg.std_ratio_limits) if cfg.match_std else np.ones(3)
     k = cfg.strength
     # Interpolate between identity and the full transfer, per channel:
@@ -115,14 +126,16 @@ def _harmonize_in(image: np.ndarray, mask: np.ndarray, cfg: HarmonizeConfig, fal
     target_mean = (1 - k) * mu_s + k * mu_r
     affine = np.concatenate([np.diag(scale), (target_mean - mu_s * scale)[:, None]], 1)
     box = bbox(region)
-    lab = _to_lab(image[box])
+    inside = region[box]
+    lab = _to_lab(_rgb(_pixels(image[box])[inside]))  # only the pixels that change
     new = cv2.transform(lab, affine)
     np.clip(new[..., 0], 0, 100, out=new[..., 0])
     # Weight: 1 on the robot, fading to 0 across the dilation band (no visible seam).
-    w = np.clip(1.0 - dist[box] / (cfg.edge_px + 1.0), 0.0, 1.0) if cfg.edge_px > 0 else m8[box].astype(np.float32)
+    w = (np.clip(1.0 - dist[box][inside] / (cfg.edge_px + 1.0), 0.0, 1.0) if cfg.edge_px > 0
+         else np.ones(inside.sum(), np.float32))[None]
     rgb = _from_lab(cv2.blendLinear(new, lab, w, 1 - w))
     np.maximum(rgb, 0, out=rgb)
-    np.copyto(out[box], cv2.convertScaleAbs(rgb), where=region[box][..., None])  # rounded, saturated at 255
+    _pixels(out[box])[inside] = _pixels(cv2.convertScaleAbs(rgb))[0]  # rounded, saturated at 255
     return True
 
 
