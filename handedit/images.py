@@ -6,6 +6,17 @@ import cv2
 import numpy as np
 
 
+def pixels(rgb: np.ndarray) -> np.ndarray:
+    """(h,w,3) uint8 as (h,w) 3-byte items (a view, writable when ``rgb`` is): a masked
+    gather or scatter then moves whole pixels, ~4x faster than numpy's per-channel indexing."""
+    return rgb.view(np.dtype("V3"))[..., 0]
+
+
+def pixel_row(gathered: np.ndarray) -> np.ndarray:
+    """(N,) gathered ``pixels`` as one (1,N,3) uint8 row (OpenCV then pays its per-row cost once)."""
+    return gathered.view(np.uint8).reshape(1, -1, 3)
+
+
 def encode_png(image: np.ndarray) -> bytes:
     a = np.ascontiguousarray(image)
     if a.dtype == bool:

@@ -9,6 +9,8 @@ back; replaced hands are checked for visible human residue.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 import zarr
 from prefect import task
@@ -24,11 +26,18 @@ from handedit.vision.composite import CompositeConfig, composite as composite_fr
 from handedit.vision.object_depth import object_occluder
 
 
+@lru_cache(maxsize=4)
 def _object_mesh(source_json: str | None):
+    """(vertices, faces) of the clip's object, once per worker process (every chunk of every
+    embodiment of the clip reads the same mesh)."""
     if not source_json:
         return None, None
     mesh = open_source_json(source_json).object_mesh()
-    return (None, None) if mesh is None else mesh
+    if mesh is None:
+        return None, None
+    for a in mesh:
+        a.flags.writeable = False  # shared by every later chunk
+    return mesh
 
 
 def body(root: zarr.Group, job: ChunkJob) -> StageOutput:

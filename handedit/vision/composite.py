@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 import pydantic
 
+from handedit.images import pixels
 from handedit.keypoints import N_JOINTS, PARENT, WRIST
 from handedit.reasons import STATUS_DTYPE, Reason, per_frame
 from handedit.metrics.similarity import bbox
@@ -158,7 +159,13 @@ def robot_windows(rgba: np.ndarray, cfg: CompositeConfig) -> list[tuple[slice, s
     cv2's float Gaussian kernel): all that compositing changes, and all of the occluder it
     reads (the drawn sides' pixels are a subset); None where nothing is rendered."""
     reach = max(1, (int(round(cfg.feather_px * 8 + 1)) | 1) // 2)
-    return [bbox(rgba[i, ..., 3] > 0, reach) for i in range(len(rgba))]
+    H, W = rgba.shape[1:3]
+    out = []
+    for frame in rgba:
+        x, y, w, h = cv2.boundingRect(cv2.extractChannel(frame, 3))  # of the non-zero alpha; (0,0,0,0) when none
+        out.append(None if w == 0 else (slice(max(0, y - reach), min(H, y + h + reach)),
+                                        slice(max(0, x - reach), min(W, x + w + reach))))
+    return out
 
 
 def composite(
@@ -216,7 +223,7 @@ def composite(
             if keep.any():
                 keep = grow(keep, cfg.paste_dilate_px) if cfg.paste_dilate_px else keep
                 bg = bg.copy()
-                bg[keep] = source[i][keep]
+                pixels(bg)[keep] = pixels(source[i])[keep]
         img = image[i]
         if not np.may_share_memory(img, bg):
             img[...] = bg  # exactly the background wherever no robot contributes
@@ -224,10 +231,12 @@ def composite(
         n_visible = np.zeros(S, np.int64)
         if windows[i] is not None:
             ys, xs = windows[i]
-            alpha, side = rgba[i, ys, xs, 3], side_of[i][ys, xs]
-            drawn_side = np.zeros(256, bool)
-            drawn_side[np.flatnonzero(replace[i]) + 1] = True
-            a = np.where(drawn_side[side] & (alpha > 0), alpha * np.float32(1 / 255), np.float32(0))
+            side = side_of[i][ys, xs]
+            drawn = np.zeros(256, np.uint8)  # 255 for the labels of the sides drawn
+            drawn[np.flatnonzero(replace[i]) + 1] = 255
+            # alpha in [0, 1] where a drawn side's robot is, else 0
+            a = np.multiply(cv2.bitwise_and(cv2.extractChannel(rgba[i, ys, xs], 3), cv2.LUT(side, drawn)), np.float32(1 / 255),
+                            dtype=np.float32)
             occ = occlusion_mask(
                 None if depth is None else depth[i][ys, xs], a,
                 None if occluder_mask is None else occluder_mask[i][ys, xs],
@@ -241,7 +250,7 @@ def composite(
                 robot_mask[i, k, ys, xs] = mine = seen & (side == k + 1)
                 n_visible[k] = np.count_nonzero(mine)
             soft = vis * cv2.GaussianBlur(vis, (0, 0), cfg.feather_px) if cfg.feather_px > 0 else vis
-            fg = np.ascontiguousarray(rgba[i, ys, xs, :3])
+            fg = cv2.cvtColor(rgba[i, ys, xs], cv2.COLOR_RGBA2RGB)
             if cfg.premultiplied:  # un-premultiply so the feathered alpha applies to true colour
                 fg = np.clip(np.round(np.where(a[..., None] > 0, fg / np.maximum(a[..., None], 1e-6), 0)), 0, 255).astype(np.uint8)
             # soft * fg + (1 - soft) * bg, rounded; exactly bg where soft is 0 (incl. occluded pixels)

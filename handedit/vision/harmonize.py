@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 import pydantic
 
+from handedit.images import pixel_row, pixels
 from handedit.reasons import STATUS_DTYPE, Reason
 from handedit.metrics.similarity import bbox
 
@@ -63,17 +64,6 @@ def _to_lab(rgb: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(np.divide(rgb, np.float32(255), dtype=np.float32), cv2.COLOR_RGB2Lab)
 
 
-def _pixels(rgb: np.ndarray) -> np.ndarray:
-    """(h,w,3) uint8 as (h,w) 3-byte items (a view): a masked gather or scatter moves whole
-    pixels, four times faster than numpy's per-channel indexing."""
-    return rgb.view(np.dtype("V3"))[..., 0]
-
-
-def _rgb(pixels: np.ndarray) -> np.ndarray:
-    """(N,) gathered pixels as a (1,N,3) uint8 row (one row: OpenCV's per-row cost once)."""
-    return pixels.view(np.uint8).reshape(1, -1, 3)
-
-
 def _from_lab(lab: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(lab.astype(np.float32), cv2.COLOR_Lab2RGB) * 255.0
 
@@ -94,13 +84,13 @@ def harmonize_frame(image: np.ndarray, robot_mask: np.ndarray, cfg: HarmonizeCon
 
 
 def _harmonize_in(image: np.ndarray, mask: np.ndarray, cfg: HarmonizeConfig, fallback_ok: bool, out: np.ndarray) -> bool:
-    """Dense over the window, written into ``out`` (False, nothing written, when the ring is
-    too small and ``fallback_ok`` is not set): one exact distance to the robot gives the
-    dilated region, the ring and the edge weight (a dilation by the ring's disk cost more
-    than the rest together). The statistics are masked ``cv2.meanStdDev`` on every other
-    pixel (a quarter of the Lab conversions; all pixels when that leaves fewer than
-    ``_MIN_STAT_PX``); the transfer is one affine map per pixel (``cv2.transform``) blended
-    by the edge weight, in the region's own box."""
+    """Over the window, written into ``out`` (False, nothing written, when the ring is too
+    small and ``fallback_ok`` is not set): one exact distance to the robot gives the dilated
+    region, the ring and the edge weight (a dilation by the ring's disk cost more than the
+    rest together). Only the pixels used are converted to Lab: the robot's and the ring's
+    on every other pixel for the statistics (all pixels when that leaves fewer than
+    ``_MIN_STAT_PX``), then the region's, which one affine map (``cv2.transform``) and the
+    edge weight's blend change."""
     m8 = mask.astype(np.uint8)
     dist = cv2.distanceTransform(1 - m8, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     region = dist <= cfg.edge_px
@@ -115,9 +105,9 @@ def _harmonize_in(image: np.ndarray, mask: np.ndarray, cfg: HarmonizeConfig, fal
     robot_s, ring_s = mask[::step, ::step], ring[::step, ::step]
     if min(np.count_nonzero(robot_s), np.count_nonzero(ring_s)) < _MIN_STAT_PX:
         step, robot_s, ring_s = 1, mask, ring
-    sub = _pixels(image[::step, ::step])
-    mu_s, sd_s = (v.ravel() for v in cv2.meanStdDev(_to_lab(_rgb(sub[robot_s]))))
-    mu_r, sd_r = (v.ravel() for v in cv2.meanStdDev(_to_lab(_rgb(sub[ring_s]))))
+    sub = pixels(image[::step, ::step])
+    mu_s, sd_s = (v.ravel() for v in cv2.meanStdDev(_to_lab(pixel_row(sub[robot_s]))))
+    mu_r, sd_r = (v.ravel() for v in cv2.meanStdDev(_to_lab(pixel_row(sub[ring_s]))))
     ratio = np.clip(sd_r / np.maximum(sd_s, 1e-3), *cfg.std_ratio_limits) if cfg.match_std else np.ones(3)
     k = cfg.strength
     # Interpolate between identity and the full transfer, per channel:
@@ -127,7 +117,7 @@ def _harmonize_in(image: np.ndarray, mask: np.ndarray, cfg: HarmonizeConfig, fal
     affine = np.concatenate([np.diag(scale), (target_mean - mu_s * scale)[:, None]], 1)
     box = bbox(region)
     inside = region[box]
-    lab = _to_lab(_rgb(_pixels(image[box])[inside]))  # only the pixels that change
+    lab = _to_lab(pixel_row(pixels(image[box])[inside]))  # only the pixels that change
     new = cv2.transform(lab, affine)
     np.clip(new[..., 0], 0, 100, out=new[..., 0])
     # Weight: 1 on the robot, fading to 0 across the dilation band (no visible seam).
@@ -135,7 +125,7 @@ def _harmonize_in(image: np.ndarray, mask: np.ndarray, cfg: HarmonizeConfig, fal
          else np.ones(inside.sum(), np.float32))[None]
     rgb = _from_lab(cv2.blendLinear(new, lab, w, 1 - w))
     np.maximum(rgb, 0, out=rgb)
-    _pixels(out[box])[inside] = _pixels(cv2.convertScaleAbs(rgb))[0]  # rounded, saturated at 255
+    pixels(out[box])[inside] = pixels(cv2.convertScaleAbs(rgb))[0]  # rounded, saturated at 255
     return True
 
 
