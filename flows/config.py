@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, ClassVar
 
 import yaml
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator
@@ -29,7 +29,7 @@ from handedit.vision.segment import SegmentConfig
 
 
 class IngestConfig(BaseModel):
-    VERSION: int = 1
+    VERSION: ClassVar[int] = 2  # 2: the object's depth (from the source's mesh and pose)
     model_config = ConfigDict(frozen=True, extra="forbid")
 
 

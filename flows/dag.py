@@ -139,9 +139,8 @@ def embodiment_nodes(clip: ClipPlan, emb: str, scope: str, frames_per_chunk: int
                      Dep(segment, k, (SCOPE_MASK[scope], "hand_status")), Dep(ingest, k, ("frames",)),
                      Dep(registration, k, ("keypoints", "keypoints_valid"))]
         comp_ctx = {**base_ctx, "scope": scope}
-        if clip.has_object:  # object mask + pose, and the source for its mesh (depth occlusion)
-            comp_deps.append(Dep(ingest, k, ("object_mask", "object_pose")))
-            comp_ctx["source"] = clip.source_json
+        if clip.has_object:  # the object's mask and depth (occlusion)
+            comp_deps.append(Dep(ingest, k, ("object_mask", "object_depth")))
         upstream = [(ingest, k), (registration, k), (segment, k), (restore, k), (ret, rk), (ren, k), (comp, k), (harm, k)]
         if not seq:
             nodes.append(Node(ret, k, s, e, *_hand_retarget(ingest, registration, segment, k, base_ctx, clip)))

@@ -146,6 +146,7 @@ ARRAYS: dict[str, tuple[ArraySpec, ...]] = {
         ArraySpec("arm_valid", ("S", 3), "bool", ("hand", "arm_joint"), when="arm", fill=False),
         ArraySpec("object_mask", _MASK, "bool", _MASK_DIMS, image=True, when="object", fill=False),
         ArraySpec("object_pose", (4, 4), "float64", ("row", "col"), when="object"),
+        ArraySpec("object_depth", _MASK, "float32", _MASK_DIMS, image=True, when="object"),  # 0: no surface known
         ArraySpec("gt_hand_mask", _MASK, "bool", _MASK_DIMS, image=True, when="gt", fill=False),
         ArraySpec("gt_handarm_mask", _MASK, "bool", _MASK_DIMS, image=True, when="gt", fill=False),
         ArraySpec("gt_background", ("H", "W", 3), "uint8", ("y", "x", "rgb"), image=True, when="gt"),

@@ -1,15 +1,13 @@
 """composite: the rendered robots over the restored background, respecting occlusion.
 
-Occlusion by the object: the source's object mask always; plus the object's depth
-(rasterized from its mesh and per-frame pose, ``handedit.vision.object_depth``) when the
-job's context names the clip's ``source`` (its mesh) and the pose is known, so the
-nearer surface wins per pixel. Hands whose robot is not drawn get their source pixels
-back; replaced hands are checked for visible human residue.
+Occlusion by the object: the source's object mask always; plus the object's depth where
+the source knows its geometry (ingest stored it, once per source frame: its mesh and
+pose rasterized, ``handedit.vision.object_depth``), so the nearer surface wins per pixel.
+Hands whose robot is not drawn get their source pixels back; replaced hands are checked
+for visible human residue.
 """
 
 from __future__ import annotations
-
-from functools import lru_cache
 
 import numpy as np
 import zarr
@@ -17,27 +15,12 @@ from prefect import task
 
 from handedit.camera import Intrinsics, project
 from handedit.reasons import Reason, combine, gate, per_frame
-from handedit.sources import open_source_json
 from handedit.storage import Unit, read_chunk
 from handedit.storage.layout import SCOPE_MASK
 from handedit.tasks._options import stage_options
 from handedit.tasks.common import ChunkJob, StageOutput, execute
 from handedit.vision.composite import CompositeConfig, composite as composite_frames, robot_windows
 from handedit.vision.object_depth import object_occluder
-
-
-@lru_cache(maxsize=4)
-def _object_mesh(source_json: str | None):
-    """(vertices, faces) of the clip's object, once per worker process (every chunk of every
-    embodiment of the clip reads the same mesh)."""
-    if not source_json:
-        return None, None
-    mesh = open_source_json(source_json).object_mesh()
-    if mesh is None:
-        return None, None
-    for a in mesh:
-        a.flags.writeable = False  # shared by every later chunk
-    return mesh
 
 
 def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
@@ -53,11 +36,8 @@ def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     windows = robot_windows(ren["rgba"], cfg)
     occluder, occluder_depth = None, None
     if job.context.get("has_object"):
-        obj = read_chunk(root, Unit("ingest", clip), ["object_mask", "object_pose"], a, b)
-        vertices, faces = _object_mesh(job.context.get("source"))
-        occluder, occluder_depth = object_occluder(
-            obj["object_mask"], vertices, faces, obj["object_pose"], intr, windows
-        )
+        obj = read_chunk(root, Unit("ingest", clip), ["object_mask", "object_depth"], a, b)
+        occluder, occluder_depth = object_occluder(obj["object_mask"], obj["object_depth"])
     robot_depth = None if occluder_depth is None else read_chunk(root, Unit("render", clip, embodiment=emb), ["depth"], a, b)["depth"]
     ready = gate(bg["status"], ren["status"])
     replace = ready[:, None] & (ren["hand_status"] == Reason.OK)

@@ -1,9 +1,13 @@
-"""ingest: copy one chunk of a source clip (frames, camera, keypoints, object, GT) into the store."""
+"""ingest: copy one chunk of a source clip (frames, camera, keypoints, object, GT) into the store.
+
+The object's depth comes from the source too (its mesh and pose, rasterized once per source
+frame), so every embodiment's composite reads it instead of rasterizing it again."""
 
 from __future__ import annotations
 
 from dataclasses import replace
 
+import numpy as np
 import zarr
 from prefect import task
 
@@ -25,6 +29,8 @@ def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     if job.context.get("has_object"):
         arrays["object_mask"] = chunk.object_mask
         arrays["object_pose"] = chunk.object_pose
+        # 0 (no surface known) where the source has no object geometry: the mask alone occludes
+        arrays["object_depth"] = chunk.object_depth if chunk.object_depth is not None else np.zeros(chunk.object_mask.shape, np.float32)
     if job.context.get("has_gt"):
         arrays.update({f"gt_{k}": v for k, v in chunk.gt.items()})
     status, details = frame_status(chunk)

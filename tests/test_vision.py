@@ -476,7 +476,7 @@ def test_object_depth_matches_a_per_face_reference():
     rng = np.random.default_rng(0)
     meshes = [trimesh.creation.cylinder(0.05, 0.3, 32), trimesh.creation.box((0.2, 0.1, 0.05)),
               trimesh.creation.icosphere(2, 0.08)]
-    covered = in_window = 0
+    covered = 0
     for mesh in meshes:
         for _ in range(3):
             T = trimesh.transformations.random_rotation_matrix(rng.random(3))
@@ -486,13 +486,7 @@ def test_object_depth_matches_a_per_face_reference():
             np.testing.assert_array_equal(got > 0, want > 0)
             np.testing.assert_allclose(got, want, rtol=1e-6)
             covered += int((got > 0).sum())
-            win = (slice(17, 45), slice(31, 62))  # the composite's robot window: that part, exactly
-            part = rasterize_depth(mesh.vertices, mesh.faces, T, intr, win)
-            np.testing.assert_array_equal(part[win], got[win])
-            part[win] = 0
-            assert not part.any()
-            in_window += int((got[win] > 0).sum())
-    assert covered > 0.1 * 9 * 80 * 60 and in_window > 0.1 * 9 * 28 * 31
+    assert covered > 0.1 * 9 * 80 * 60
 
 
 def test_grow_is_the_disk_dilation():
@@ -639,8 +633,7 @@ def test_object_depth_of_a_known_box():
     behind = pose.copy()
     behind[2, 3] = -1.0
     assert not object_depth(box.vertices, box.faces, behind[None], intr).any()
-    m, dd = object_occluder(None, None, None, pose[None], intr)
-    assert m is None and dd is None
-    nan_pose = np.full((1, 4, 4), np.nan)
-    m, dd = object_occluder(np.zeros((1, 60, 80), bool), box.vertices, box.faces, nan_pose, intr)
-    assert dd is None and not m.any()
+    nan_pose = np.full((1, 4, 4), np.nan)  # an unknown pose: no depth
+    assert not object_depth(box.vertices, box.faces, nan_pose, intr).any()
+    m, dd = object_occluder(np.zeros((1, 60, 80), bool), d[None])
+    assert (m[0] == inside).all() and dd is not None

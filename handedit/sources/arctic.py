@@ -128,19 +128,19 @@ def load_sequence(spec: ArcticSpec) -> Sequence:
     wfo[:, :3, :3], wfo[:, :3, 3] = rodrigues(obj[:, 1:4]), obj[:, 4:] / 1000.0
     pose = w2c @ wfo
 
-    def mask(k: int, intr, size) -> np.ndarray:  # each frame's own articulation
-        return rasterize_depth(articulated(obj[k, 0]), faces, pose[k], intr) > 0
+    def depth(k: int, intr, size) -> np.ndarray:  # each frame's own articulation
+        return rasterize_depth(articulated(obj[k, 0]), faces, pose[k], intr)
 
     images = [root / "images" / spec.subject / spec.sequence / str(EGO_VIEW) / f"{k + ioi:05d}.jpg" for k in range(T)]
     return Sequence(
         clip_id=spec.id, keypoints=np.stack(joints, 1), valid=np.ones((T, 2), bool), hands=SIDES, images=images, K=K,
         fps=30.0, world_from_camera=np.linalg.inv(w2c), dist=dist, object_pose=pose,
-        object_mesh=(articulated(rest), faces), object_mask=mask, files=spec.files(),
+        object_mesh=(articulated(rest), faces), object_depth=depth, files=spec.files(),
         meta={"dataset": "arctic", "subject": spec.subject, "sequence": spec.sequence, "object": name, "ioi_offset": ioi,
               "mano": mano_digest(spec.mano_dir),
               "mano_convention": "smplx MANO, axis-angle, flat_hand_mean=False, smplx fingertip vertices",
               "distortion": "frames undistorted with dist8 (OpenCV rational model); intrinsics are the pinhole K",
-              "object_mesh": "rigid at the window's median articulation angle (contact QC); masks use each frame's"})
+              "object_mesh": "rigid at the window's median articulation angle (contact QC); masks and depth use each frame's"})
 
 
 def _object_template(d: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -61,6 +61,9 @@ class ClipChunk:
     frame_ok: np.ndarray  # (n,) bool: False where the frame could not be decoded
     object_mask: np.ndarray | None = None  # (n,H,W) bool
     object_pose: np.ndarray | None = None  # (n,4,4) camera_from_object
+    # (n,H,W) float32 camera-z (metres) of the object's surface, 0 off it, where the source
+    # knows its geometry (mesh and pose); None: it does not (the object occludes by its mask)
+    object_depth: np.ndarray | None = None
     gt: dict[str, np.ndarray] = field(default_factory=dict)  # ground truth, e.g. hand_mask
     arm_keypoints: np.ndarray | None = None  # (n,S,3,3) camera frame (keypoints.ARM_JOINTS)
     arm_valid: np.ndarray | None = None  # (n,S,3) bool

@@ -145,13 +145,13 @@ def load_sequence(spec: HocapSpec) -> Sequence:
         obj, pose = object_ids[j], cam_obj[j]
         mesh = load_mesh(root / "models" / obj / "cleaned_mesh_10000.obj", "HO-Cap object mesh")
 
-    def mask(k: int, intr, size) -> np.ndarray:
-        return rasterize_depth(*mesh, pose[k], intr) > 0
+    def depth(k: int, intr, size) -> np.ndarray:
+        return rasterize_depth(*mesh, pose[k], intr)
 
     images = [seq / spec.image_pattern.format(serial=serial, frame=k) for k in range(T)]
     return Sequence(
         clip_id=spec.id, keypoints=kp[:, keep], valid=valid[:, keep], hands=hands, images=images, K=K, fps=30.0,
-        world_from_camera=wfc, object_pose=pose, object_mesh=mesh, object_mask=mask if mesh is not None else None,
+        world_from_camera=wfc, object_pose=pose, object_mesh=mesh, object_depth=depth if mesh is not None else None,
         files=[meta_p, pm_p, pv_p, beta_p, K_p],
         meta={"dataset": "hocap", "subject": spec.subject, "sequence": spec.sequence, "hololens": serial, "object": obj,
               "mano": mano_digest(spec.mano_dir),

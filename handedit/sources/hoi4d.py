@@ -200,9 +200,12 @@ def load_sequence(spec: Hoi4dSpec) -> Sequence:
         obj = (labels > 0) & ~np.isin(labels, list(hand_labels))
         return cv2.resize(obj.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST).astype(bool)
 
+    def depth(k: int, intr, size) -> np.ndarray:  # the CAD model's, for occlusion
+        return rasterize_depth(*mesh, poses[k], intr)
+
     return Sequence(
         clip_id=spec.id, keypoints=kp[:, keep], valid=valid[:, keep], hands=hands, images=images, K=K, fps=FPS,
-        object_pose=poses, object_mesh=mesh, object_mask=mask, files=[K_p, *([mesh_p] if mesh_p else []), *([video] if video else [])],
+        object_pose=poses, object_mesh=mesh, object_mask=mask, object_depth=depth if mesh else None, files=[K_p, *([mesh_p] if mesh_p else []), *([video] if video else [])],
         video=video,
         meta={"dataset": "hoi4d", "sequence": spec.sequence, "category": name, "instance": instance,
               "mano": mano_digest(spec.mano_dir), "mano_convention": "manopth, axis-angle, flat_hand_mean=True, camera frame",

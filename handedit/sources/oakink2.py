@@ -112,13 +112,13 @@ def load_sequence(spec: Oakink2Spec) -> Sequence:
             raise SourceError(f"OakInk2 object {obj}: expected one .obj/.ply in {d}, found {len(files)}; download object_raw/.")
         mesh = load_mesh(files[0], "OakInk2 object mesh")
 
-    def mask(k: int, intr, size) -> np.ndarray:
-        return rasterize_depth(*mesh, pose[k], intr) > 0
+    def depth(k: int, intr, size) -> np.ndarray:
+        return rasterize_depth(*mesh, pose[k], intr)
 
     return Sequence(
         clip_id=spec.id, keypoints=kp, valid=np.ones((T, 2), bool), hands=SIDES, images=images, K=K, fps=30.0,
         world_from_camera=np.linalg.inv(extr), object_pose=pose, object_mesh=mesh,
-        object_mask=mask if mesh is not None else None, files=[anno_p],
+        object_depth=depth if mesh is not None else None, files=[anno_p],
         meta={"dataset": "oakink2", "sequence": spec.sequence, "camera": serial, "object": obj,
               "mocap_frames": [fids[0], fids[-1]], "mano": mano_digest(spec.mano_dir),
               "mano_convention": "manotorch, quaternions (w, x, y, z), flat_hand_mean=True, centred on the wrist + tsl"})

@@ -39,6 +39,9 @@ class Sequence:
     object_pose: np.ndarray | None = None  # (T,4,4) camera_from_object
     object_mesh: tuple[np.ndarray, np.ndarray] | None = None  # (V,3) object frame metres, (F,3)
     object_mask: Callable[[int, Intrinsics, tuple[int, int]], np.ndarray] | None = None  # frame k -> (H,W) bool
+    # frame k -> (H,W) float32 depth of the object's surface (0 off it); the mask, when not
+    # given, is where it is > 0
+    object_depth: Callable[[int, Intrinsics, tuple[int, int]], np.ndarray] | None = None
     files: list[Path] = field(default_factory=list)  # annotation files (their digests identify the clip)
     meta: dict = field(default_factory=dict)
     video: Path | None = None  # the frames as one video file instead of image files
@@ -125,8 +128,12 @@ class SequenceSource:
         chunk = ClipChunk(start=start, frames=frames, world_from_camera=wfc, keypoints=kp, keypoints_valid=valid, frame_ok=ok)
         if s.object_pose is not None:
             chunk.object_pose = s.object_pose[lo:hi].copy()
-            chunk.object_mask = (np.stack([s.object_mask(k, self.intrinsics, (w, h)) for k in range(lo, hi)])
-                                 if s.object_mask is not None else np.zeros((n, h, w), bool))
+            if s.object_depth is not None:
+                chunk.object_depth = np.stack([s.object_depth(k, self.intrinsics, (w, h)) for k in range(lo, hi)])
+            if s.object_mask is not None:
+                chunk.object_mask = np.stack([s.object_mask(k, self.intrinsics, (w, h)) for k in range(lo, hi)])
+            else:
+                chunk.object_mask = chunk.object_depth > 0 if chunk.object_depth is not None else np.zeros((n, h, w), bool)
         return chunk
 
 

@@ -708,8 +708,11 @@ class SyntheticSource:
                 kp = frame_keypoints(plan, st) @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
                 valid[i, 0] = kp[:, 2] > 0.01
                 kps[i, 0] = np.where(valid[i, 0][:, None], kp, 0.0)
+        from handedit.vision.object_depth import object_depth
+
         return ClipChunk(
             start=start, frames=out["frames"], world_from_camera=T_wc, keypoints=kps, keypoints_valid=valid,
             frame_ok=np.ones(n, bool), object_mask=out["obj"], object_pose=T_co,
+            object_depth=object_depth(*self.object_mesh(), T_co, plan.intr),
             gt={"hand_mask": out["hand"], "handarm_mask": out["handarm"], "background": out["background"]},
         )

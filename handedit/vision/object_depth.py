@@ -30,11 +30,8 @@ def _runs(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return owner, np.arange(len(owner)) - np.repeat(np.cumsum(counts) - counts, counts)
 
 
-def rasterize_depth(vertices: np.ndarray, faces: np.ndarray, camera_from_object: np.ndarray, intr: Intrinsics,
-                    window: tuple[slice, slice] | None = None) -> np.ndarray:
-    """(H,W) float32 camera-z depth in metres of the nearest object surface; 0 = no object
-    (and, given ``window`` (rows, cols), everywhere outside it: the composite reads the
-    occluder only in the robot's window, and the cost is the pixels the faces cover).
+def rasterize_depth(vertices: np.ndarray, faces: np.ndarray, camera_from_object: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """(H,W) float32 camera-z depth in metres of the nearest object surface; 0 = no object.
 
     Vectorised over faces (a Python loop per face cost ~30 ms per frame, per embodiment):
     each face's rows are cut to the span its edges cross, every
@@ -52,9 +49,8 @@ def rasterize_depth(vertices: np.ndarray, faces: np.ndarray, camera_from_object:
     f = f[(z[f] > Z_NEAR).all(1)]
     p = uv[f]  # (F,3,2) screen corners
     lo, hi = np.floor(p.min(1) - 0.5).astype(np.int64), np.ceil(p.max(1)).astype(np.int64)
-    (r0, r1), (c0, c1) = ((0, H), (0, W)) if window is None else ((window[0].start, window[0].stop), (window[1].start, window[1].stop))
-    x0, y0 = np.maximum(lo[:, 0], c0), np.maximum(lo[:, 1], r0)
-    x1, y1 = np.minimum(hi[:, 0], c1 - 1), np.minimum(hi[:, 1], r1 - 1)
+    x0, y0 = np.maximum(lo[:, 0], 0), np.maximum(lo[:, 1], 0)
+    x1, y1 = np.minimum(hi[:, 0], W - 1), np.minimum(hi[:, 1], H - 1)
     (ax, ay), (bx, by), (cx, cy) = p[:, 0].T, p[:, 1].T, p[:, 2].T
     area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
     keep = (x0 <= x1) & (y0 <= y1) & (np.abs(area) >= 1e-12)
@@ -89,42 +85,31 @@ def rasterize_depth(vertices: np.ndarray, faces: np.ndarray, camera_from_object:
     w2 = 1.0 - w0 - w1
     inside = (w0 >= -1e-9) & (w1 >= -1e-9) & (w2 >= -1e-9)
     inv_z = w0 * q[:, 7] + w1 * q[:, 8] + w2 * q[:, 9]
-    h, w = r1 - r0, c1 - c0  # the z-buffer covers the window only
-    depth = np.full(h * w, np.inf, np.float64)
-    np.minimum.at(depth, ((yi - r0) * w + xi - c0)[inside], 1.0 / np.maximum(inv_z[inside], 1e-12))
+    depth = np.full(H * W, np.inf, np.float64)
+    np.minimum.at(depth, (yi * W + xi)[inside], 1.0 / np.maximum(inv_z[inside], 1e-12))
     depth[~np.isfinite(depth)] = 0.0
-    out = np.zeros((H, W), np.float32)
-    out[r0:r1, c0:c1] = depth.reshape(h, w)
-    return out
+    return depth.reshape(H, W).astype(np.float32)
 
 
-def object_depth(vertices: np.ndarray, faces: np.ndarray, camera_from_object: np.ndarray, intr: Intrinsics,
-                 windows: list[tuple[slice, slice] | None] | None = None) -> np.ndarray:
-    """(n,H,W) float32 object depth for a chunk of poses (n,4,4); 0 where no object (and,
-    given per-frame ``windows``, outside each frame's window; a None window: no depth)."""
+def object_depth(vertices: np.ndarray, faces: np.ndarray, camera_from_object: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """(n,H,W) float32 object depth for a chunk of poses (n,4,4); 0 where no object."""
     poses = np.asarray(camera_from_object, np.float64).reshape(-1, 4, 4)
     out = np.zeros((len(poses), intr.height, intr.width), np.float32)
     for i, T in enumerate(poses):
-        if windows is None or windows[i] is not None:
-            out[i] = rasterize_depth(vertices, faces, T, intr, None if windows is None else windows[i])
+        out[i] = rasterize_depth(vertices, faces, T, intr)
     return out
 
 
-def object_occluder(object_mask: np.ndarray | None, vertices: np.ndarray | None, faces: np.ndarray | None,
-                    camera_from_object: np.ndarray | None, intr: Intrinsics,
-                    windows: list[tuple[slice, slice] | None] | None = None) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """(occluder mask, occluder depth) for ``composite``; depth is None without mesh or pose,
-    and rasterized only inside ``windows`` when given (``composite.robot_windows``).
+def object_occluder(object_mask: np.ndarray | None, depth: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(occluder mask, occluder depth) for ``composite`` from the source's object mask and
+    depth (ingest's ``object_depth``; None or all 0 where the source knows no geometry:
+    then the mask alone, and no depth).
 
     With depth, the occluder is the object's whole silhouette (where the human hand hid
     it, the robot may now be behind it) united with the source's object mask.
     """
-    if vertices is None or faces is None or camera_from_object is None:
+    if depth is None or not depth.any():
         return object_mask, None
-    poses = np.asarray(camera_from_object, np.float64)
-    if not np.isfinite(poses).all():
-        return object_mask, None
-    depth = object_depth(vertices, faces, poses, intr, windows)
     mask = depth > 0
     if object_mask is not None:
         mask |= np.asarray(object_mask, bool)

@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 import pydantic
 
+from handedit.images import pixels
 from handedit.reasons import STATUS_DTYPE, Reason
 from handedit.metrics.similarity import bbox
 from handedit.vision.masks import grow
@@ -435,7 +436,7 @@ def restore_background(
             Hb = _into_box(Hm, win)
             warped = cv2.warpPerspective(frames[j], Hb, _size(win), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
             seen = cv2.warpPerspective(visible, Hb, _size(win), flags=cv2.INTER_NEAREST) > 0
-            vals = warped[hy, hx].astype(np.float32)
+            vals = pixels(warped)[hy, hx].view(np.uint8).reshape(-1, 3).astype(np.float32)  # whole-pixel gather
             if cfg.gain_compensation:
                 near = (ring & seen).view(np.uint8)
                 if cv2.countNonZero(near) >= 50:  # masked means (cv2: no gathers of the ring's pixels)
@@ -454,7 +455,7 @@ def restore_background(
             many = cnt >= 3
             if many.any():
                 val[many] = _median_seen(C[:, many], V[:, many])
-            img[win][hy[filled], hx[filled]] = np.clip(np.round(val[filled]), 0, 255).astype(np.uint8)
+            pixels(img[win])[hy[filled], hx[filled]] = pixels(np.clip(np.round(val[filled]), 0, 255).astype(np.uint8))
         filled_frac[k] = float(filled.mean())
         rest = np.zeros((H, W), bool)
         rest[win][hy[~filled], hx[~filled]] = True
