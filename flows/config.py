@@ -182,6 +182,8 @@ class CurateConfig(BaseModel):
                                        "objects (one listing per clip) and re-run it if any is missing")
     handoff_mib: int = Field(512, ge=0, description="chunks a task wrote, kept in memory (up to this many MiB per task) "
                              "for its own later stages that read them (storage.handoff); 0: every read decodes the store")
+    reuse_mib: int = Field(512, ge=0, description="other tasks' chunks a worker decoded (a clip's background, frames, masks), "
+                           "kept (up to this many MiB per worker process) for its next embodiment task of the clip; 0: off")
     estimate_hands: EstimateHandsConfig = EstimateHandsConfig()
     registration: RegistrationConfig = RegistrationConfig()
     segment: SegmentConfig = SegmentConfig()

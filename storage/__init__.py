@@ -16,6 +16,7 @@ from handedit.storage.store import (
     open_store,
     read_chunk,
     set_attrs,
+    writable,
     write_chunk,
 )
 
@@ -23,5 +24,5 @@ __all__ = [
     "ARRAYS", "SCOPES", "STAGES", "Unit", "chunk_ranges", "read_ledger", "status_counts",
     "ChunkRecord", "is_current", "provenance_key", "read_records",
     "write_records", "StoreError", "create_or_open_store", "create_unit", "digest",
-    "open_store", "read_chunk", "write_chunk", "Location", "set_attrs",
+    "open_store", "read_chunk", "writable", "write_chunk", "Location", "set_attrs",
 ]

@@ -9,18 +9,28 @@ still to come in the same walk reads that chunk (the DAG's deps say which), and
 ``read_chunk`` serves a range that kept chunks cover from memory. An entry is dropped
 once its last reader has run (``done``), and nothing is kept beyond ``budget_bytes``.
 
-What is served equals what is stored: the codecs are lossless and an entry is the very
-array that was written (made read-only); readers get a copy, because stages write into
-what they read (composite into the background, harmonize into the composite). Only the
-walk's own writes are kept, so a chunk stored by an earlier run is always read from the
-store, where a damaged object is still found (``CorruptChunk``).
+The other tasks' chunks a walk reads (an embodiment task reads its clip's background,
+frames, masks and statuses, as every other embodiment task of the clip does) are decoded
+once per worker process and then reused (``Reused``), keyed by their content: the digest
+their provenance record holds, so a recomputed chunk is a new key. A worker runs a clip's
+embodiment tasks one after another, each reading the clip's chunks in order, so the clip
+whose task is running keeps what it holds and never evicts its own chunks (least recently
+used would keep none of a clip longer than the budget): other clips' chunks go first.
+
+What is served equals what is stored: the codecs are lossless, and an entry is the very
+array that was written or decoded, made read-only and served as it is (a copy would cost
+what decoding does: most of a read is the first touch of fresh memory); a stage that
+writes into what it read (composite into the background, harmonize into the composite)
+allocates instead when that is shared (``storage.writable``). A walk's own units are read from the store unless this walk wrote them, so a
+damaged object of a chunk stored earlier is still found (``CorruptChunk``); another
+task's chunk is decoded from the store the first time a worker reads it.
 """
 
 from __future__ import annotations
 
 import contextlib
 import contextvars
-from collections import Counter
+from collections import Counter, OrderedDict
 from collections.abc import Iterable, Iterator, Mapping
 
 import numpy as np
@@ -28,18 +38,61 @@ import numpy as np
 _ACTIVE: contextvars.ContextVar["Handoff | None"] = contextvars.ContextVar("handedit_handoff", default=None)
 
 
+class Reused:
+    """Decoded chunks of other tasks' units, per worker process, by content (see module doc)."""
+
+    def __init__(self):
+        self.entries: OrderedDict[tuple, tuple[str, np.ndarray]] = OrderedDict()  # key -> (clip, array), oldest first
+        self.nbytes = 0
+        self.budget = 0
+
+    def get(self, key: tuple) -> np.ndarray | None:
+        entry = self.entries.get(key)
+        return None if entry is None else entry[1]
+
+    def put(self, key: tuple, clip: str, array: np.ndarray) -> None:
+        """Keep ``array`` (not copied: the caller hands it over), evicting other clips' entries,
+        oldest first, to make room; never this clip's own."""
+        if key in self.entries or array.nbytes > self.budget:
+            return
+        for old in [k for k, (c, _) in self.entries.items() if c != clip]:
+            if self.nbytes + array.nbytes <= self.budget:
+                break
+            self.nbytes -= self.entries.pop(old)[1].nbytes
+        if self.nbytes + array.nbytes > self.budget:
+            return
+        array.flags.writeable = False
+        self.entries[key] = (clip, array)
+        self.nbytes += array.nbytes
+
+    def clear(self) -> None:
+        self.entries.clear()
+        self.nbytes = 0
+
+
+REUSED = Reused()  # the worker process's
+
+
 class Handoff:
     """Kept chunks of one walk on one store; ``readers``: (unit path, chunk start frame) ->
-    how many nodes still to run read that chunk (and which of its arrays)."""
+    how many nodes still to run read that chunk; ``names``: the same -> {array: how many of
+    them read it} (the last reader of an array takes it over, writable); ``digests``:
+    (unit path, start, stop) -> {array: digest} of the other tasks' chunks the walk reads
+    (from their provenance records), reused across walks within ``reuse_bytes``."""
 
-    def __init__(self, store: object, readers: Mapping[tuple[str, int], int], names: Mapping[tuple[str, int], set[str]],
-                 budget_bytes: int):
+    def __init__(self, store: object, readers: Mapping[tuple[str, int], int], names: Mapping[tuple[str, int], Iterable[str]],
+                 budget_bytes: int, digests: Mapping[tuple[str, int, int], Mapping[str, str]] | None = None,
+                 reuse_bytes: int = 0):
         self.store, self.budget = store, int(budget_bytes)
         self.readers: Counter = Counter(readers)
-        self.names = {k: set(v) for k, v in names.items()}
+        self.names = {k: Counter(v) for k, v in names.items()}
         self.kept: dict[str, dict[int, tuple[int, dict[str, np.ndarray]]]] = {}  # path -> start -> (stop, arrays)
+        self.written: dict[tuple[str, int, str], np.ndarray] = {}  # the writer's own arrays behind the read-only views
         self.nbytes = 0
         self.served = 0  # arrays served from memory (bench and tests read it)
+        self.digests = {k: dict(v) for k, v in (digests or {}).items()}
+        self.store_key = str(store)
+        REUSED.budget = int(reuse_bytes)
 
     def keep(self, store: object, path: str, start: int, arrays: Mapping[str, np.ndarray]) -> None:
         key = (path, start)
@@ -50,20 +103,41 @@ class Handoff:
         if not wanted or self.nbytes + size > self.budget:
             return
         stop = start + len(next(iter(wanted.values())))
+        self._drop(path, start)  # a chunk written again replaces what was kept of it
         frozen = {}
         for n, a in wanted.items():
             view = a.view()
             view.flags.writeable = False
             frozen[n] = view
-        old = self.kept.setdefault(path, {}).pop(start, None)
-        if old is not None:
-            self.nbytes -= sum(a.nbytes for a in old[1].values())
-        self.kept[path][start] = (stop, frozen)
+            self.written[(path, start, n)] = a
+        self.kept.setdefault(path, {})[start] = (stop, frozen)
         self.nbytes += size
 
+    def _reuse_key(self, path: str, name: str, start: int, stop: int) -> tuple | None:
+        digest = self.digests.get((path, start, stop), {}).get(name)
+        return None if digest is None or REUSED.budget <= 0 else (self.store_key, path, name, start, stop, digest)
+
+    def decoded(self, store: object, path: str, clip: str, name: str, start: int, stop: int, value: np.ndarray) -> np.ndarray:
+        """``value`` was just read from the store: kept for reuse when it is another task's
+        chunk (and then read-only); returned."""
+        key = self._reuse_key(path, name, start, stop) if store is self.store else None
+        if key is None:
+            return value
+        REUSED.put(key, clip, value)  # read-only from now on, when kept
+        return value
+
     def get(self, store: object, path: str, name: str, start: int, stop: int) -> np.ndarray | None:
-        """A copy of frames [start, stop) of ``name``, when kept chunks cover them all."""
-        if store is not self.store or path not in self.kept or stop <= start:
+        """Frames [start, stop) of ``name`` (read-only), when kept chunks cover them all (or,
+        another task's chunk, when this worker decoded it already)."""
+        if store is not self.store or stop <= start:
+            return None
+        key = self._reuse_key(path, name, start, stop)
+        if key is not None:
+            reused = REUSED.get(key)
+            if reused is not None:
+                self.served += 1
+                return reused
+        if path not in self.kept:
             return None
         pieces, at = [], start
         for s in sorted(self.kept[path]):
@@ -72,6 +146,10 @@ class Handoff:
                 continue
             if s > at or name not in arrays:
                 return None  # a gap, or this array was not kept
+            if (s, e) == (start, stop) and self.names[(path, s)][name] == 1:  # its last reader: take it over
+                self.nbytes -= arrays.pop(name).nbytes
+                self.served += 1
+                return self.written.pop((path, s, name))
             pieces.append(arrays[name][at - s:min(stop, e) - s])
             at = min(stop, e)
             if at == stop:
@@ -79,16 +157,28 @@ class Handoff:
         if at != stop:
             return None
         self.served += 1
-        return pieces[0].copy() if len(pieces) == 1 else np.concatenate(pieces)
+        if len(pieces) == 1:
+            return pieces[0]
+        joined = np.concatenate(pieces)
+        joined.flags.writeable = False
+        return joined
 
-    def done(self, read: Iterable[tuple[str, int]]) -> None:
-        """A node ran (or was skipped): its reads no longer hold their chunks."""
-        for key in read:
+    def done(self, read: Iterable[tuple[str, int, Iterable[str]]]) -> None:
+        """A node ran (or was skipped): its reads (unit path, start, arrays) no longer hold
+        their chunks."""
+        for path, start, names in read:
+            key = (path, start)
             self.readers[key] -= 1
+            self.names.get(key, Counter()).subtract(names)
             if self.readers[key] <= 0:
-                entry = self.kept.get(key[0], {}).pop(key[1], None)
-                if entry is not None:
-                    self.nbytes -= sum(a.nbytes for a in entry[1].values())
+                self._drop(path, start)
+
+    def _drop(self, path: str, start: int) -> None:
+        entry = self.kept.get(path, {}).pop(start, None)
+        if entry is not None:
+            self.nbytes -= sum(a.nbytes for a in entry[1].values())
+            for n in entry[1]:
+                self.written.pop((path, start, n), None)
 
 
 @contextlib.contextmanager

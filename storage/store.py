@@ -306,15 +306,23 @@ def _delete_objects(array: zarr.Array, start: int, stop: int) -> None:
 
 def read_chunk(root: zarr.Group, unit: Unit, names: Iterable[str], start: int, stop: int) -> dict[str, np.ndarray]:
     """Frames [start, stop) of each named array (from memory where this walk just wrote
-    them, ``storage.handoff``)."""
+    them or this worker decoded them for another walk, ``storage.handoff``)."""
     kept, out, group = handoff.current(), {}, None
     for name in names:
         value = None if kept is None else kept.get(root.store, unit.path, name, start, stop)
         if value is None:
             group = root[unit.path] if group is None else group
             value = read_array(group[name], slice(start, stop))
+            if kept is not None:
+                value = kept.decoded(root.store, unit.path, unit.clip, name, start, stop, value)
         out[name] = value
     return out
+
+
+def writable(array: np.ndarray) -> np.ndarray | None:
+    """``array`` when a stage may write into it (read for this chunk only), None when it is
+    shared (read-only: kept or reused, ``storage.handoff``): the stage then allocates."""
+    return array if array.flags.writeable else None
 
 
 def has_array(root: zarr.Group, unit: Unit, name: str) -> bool:

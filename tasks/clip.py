@@ -200,7 +200,7 @@ def _walk_store(root, store: str, nodes, config, code_version: str, result: Walk
     starts = {n.id: n.start for n in nodes}  # the chunks this walk writes
 
     def run(into: WalkResult) -> WalkResult:
-        kept = _handoff(root, nodes, starts, config.handoff_mib)
+        kept = _handoff(root, nodes, starts, records, config.handoff_mib, config.reuse_mib)
 
         def finished(node) -> None:
             if kept is not None:
@@ -231,25 +231,29 @@ def _walk_store(root, store: str, nodes, config, code_version: str, result: Walk
     return result
 
 
-def _own_reads(node, starts: dict) -> list[tuple[str, int]]:
-    """(unit path, start frame) of each chunk ``node`` reads that its own walk writes."""
-    return [(d.unit.path, starts[(d.unit, d.chunk)]) for d in node.deps if (d.unit, d.chunk) in starts]
+def _own_reads(node, starts: dict) -> list[tuple[str, int, tuple[str, ...]]]:
+    """(unit path, start frame, arrays) of each chunk ``node`` reads that its own walk writes."""
+    return [(d.unit.path, starts[(d.unit, d.chunk)], d.arrays) for d in node.deps if (d.unit, d.chunk) in starts]
 
 
-def _handoff(root, nodes, starts: dict, budget_mib: int) -> Handoff | None:
+def _handoff(root, nodes, starts: dict, records: dict, budget_mib: int, reuse_mib: int) -> Handoff | None:
     """The walk's hand-over (``storage.handoff``): which of its chunks its nodes read, and
-    which arrays of them."""
-    if budget_mib <= 0:
+    which arrays of them; and the digests of the other tasks' chunks they read (from the
+    records), by which this worker reuses what it decoded of them."""
+    if budget_mib <= 0 and reuse_mib <= 0:
         return None
     readers: Counter = Counter()
-    names: dict = {}
+    names: dict = {}  # (path, start) -> Counter of the arrays read
+    digests: dict = {}
     for n in nodes:
         for d in n.deps:
             if (d.unit, d.chunk) in starts:
                 key = (d.unit.path, starts[(d.unit, d.chunk)])
                 readers[key] += 1
-                names.setdefault(key, set()).update(d.arrays)
-    return Handoff(root.store, readers, names, budget_mib << 20)
+                names.setdefault(key, Counter()).update(d.arrays)
+            elif (rec := records.get((d.unit, d.chunk))) is not None and rec.get("outcome") == "ok":
+                digests[(d.unit.path, rec["start"], rec["stop"])] = rec.get("outputs", {})
+    return Handoff(root.store, readers, names, max(budget_mib, 0) << 20, digests, max(reuse_mib, 0) << 20)
 
 
 def _owned_chunk(corrupt: dict, units, f: int) -> list:

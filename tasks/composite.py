@@ -15,7 +15,7 @@ from prefect import task
 
 from handedit.camera import Intrinsics, project
 from handedit.reasons import Reason, combine, gate, per_frame
-from handedit.storage import Unit, read_chunk
+from handedit.storage import Unit, read_chunk, writable
 from handedit.storage.layout import SCOPE_MASK
 from handedit.tasks._options import stage_options
 from handedit.tasks.common import ChunkJob, StageOutput, execute
@@ -44,7 +44,7 @@ def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     result = composite_frames(bg["background"], ren["rgba"], robot_depth, occluder, occluder_depth, cfg,
                               robot_side=ren["robot_side"], replace=replace, source=src["frames"], human_mask=seg[SCOPE_MASK[scope]],
                               keypoints_2d=project(reg["keypoints"], intr), keypoints_valid=reg["keypoints_valid"], windows=windows,
-                              out=bg["background"])  # read for this chunk only: composited in place
+                              out=writable(bg["background"]))  # read for this chunk only: composited in place
     upstream = ren["hand_status"]
     hand_status = np.where(replace, result.hand_status,
                            np.where(upstream == Reason.ABSENT, Reason.ABSENT, Reason.UPSTREAM)).astype(np.int16)

@@ -24,6 +24,7 @@ from handedit.storage import (
     read_chunk,
     read_ledger,
     read_records,
+    writable,
     write_chunk,
     write_records,
 )
@@ -164,44 +165,71 @@ def test_recreated_array_drops_provenance(root):
 
 
 def test_handoff_serves_what_was_written_until_its_last_reader(root):
-    """storage.handoff: a written chunk a later node reads is served from memory, as a copy,
-    only while it has readers, only for the walk's own store and within the budget."""
+    """storage.handoff: a written chunk a later node reads is served from memory, read-only,
+    only while it has readers, only for the walk's own store and within the budget; the
+    last reader of an array takes the writer's own (writable) array over."""
     from handedit.storage.handoff import Handoff, handing_over
 
     unit = Unit("segment", "c1")
     create_unit(root, unit, 8, {"H": 4, "W": 4, "S": 1}, F)
     a = np.random.default_rng(0).random((4, 1), np.float32)
     b = np.random.default_rng(1).random((4, 1), np.float32)
-    kept = Handoff(root.store, {(unit.path, 0): 1, (unit.path, 4): 2}, {(unit.path, 0): {"confidence"},
-                                                                          (unit.path, 4): {"confidence"}}, 1 << 20)
+    k0, k4 = (unit.path, 0), (unit.path, 4)
+    kept = Handoff(root.store, {k0: 2, k4: 2}, {k0: ["confidence", "confidence"], k4: ["confidence", "confidence"]}, 1 << 20)
     with handing_over(kept):
         write_chunk(root, unit, 0, {"confidence": a, "hand_status": np.zeros((4, 1), np.int16)})
         write_chunk(root, unit, 4, {"confidence": b})
         got = read_chunk(root, unit, ["confidence"], 2, 7)["confidence"]  # spans both kept chunks
         assert np.array_equal(got, np.concatenate([a, b])[2:7]) and kept.served == 1
-        got[:] = -1  # a copy: writing into it changes nothing kept
-        assert np.array_equal(read_chunk(root, unit, ["confidence"], 0, 4)["confidence"], a)
+        with pytest.raises(ValueError, match="read-only"):  # shared: a stage that writes into it allocates instead
+            got[:] = -1
+        assert writable(got) is None and writable(got.copy()) is not None
+        first = read_chunk(root, unit, ["confidence"], 0, 4)["confidence"]
+        assert np.array_equal(first, a) and writable(first) is None  # another reader is still to come
         # an array no reader named was not kept: read from the store
         assert kept.get(root.store, unit.path, "hand_status", 0, 4) is None
         assert kept.get(object(), unit.path, "confidence", 0, 4) is None  # another store
-        kept.done([(unit.path, 0)])  # chunk 0's only reader ran: dropped, chunk 4 still held
+        kept.done([(unit.path, 0, ("confidence",))])  # one of chunk 0's readers ran
+        last = read_chunk(root, unit, ["confidence"], 0, 4)["confidence"]
+        assert np.array_equal(last, a) and writable(last) is not None  # the last reader takes the written array over
         assert kept.get(root.store, unit.path, "confidence", 0, 4) is None
-        assert np.array_equal(kept.get(root.store, unit.path, "confidence", 4, 8), b)
-        kept.done([(unit.path, 4), (unit.path, 4)])
-        assert kept.nbytes == 0 and not kept.kept[unit.path]
+        kept.done([(unit.path, 0, ("confidence",)), (unit.path, 4, ("confidence",)), (unit.path, 4, ("confidence",))])
+        assert kept.nbytes == 0 and not kept.kept[unit.path] and not kept.written
         served = kept.served
         assert np.array_equal(read_chunk(root, unit, ["confidence"], 0, 8)["confidence"], np.concatenate([a, b]))
         assert kept.served == served  # from the store
-    tight = Handoff(root.store, {(unit.path, 0): 1}, {(unit.path, 0): {"confidence"}}, a.nbytes - 1)
+    tight = Handoff(root.store, {k0: 1}, {k0: ["confidence"]}, a.nbytes - 1)
     with handing_over(tight):  # over the budget: not kept
         write_chunk(root, unit, 0, {"confidence": a})
         assert tight.nbytes == 0 and tight.get(root.store, unit.path, "confidence", 0, 4) is None
 
 
+def test_reused_chunks_keep_the_running_clip_and_evict_other_clips_first():
+    """storage.handoff.Reused: within its budget; a clip never evicts its own chunks (a scan
+    longer than the budget keeps its first chunks for the next embodiment), others go oldest first."""
+    from handedit.storage.handoff import Reused
+
+    r = Reused()
+    r.budget = 4 * 100
+    chunk = lambda: np.zeros(100, np.uint8)
+    for k in range(3):
+        r.put(("B", k), "clip-b", chunk())
+    for k in range(2):  # clip a: evicts b's, oldest first
+        r.put(("A", k), "clip-a", chunk())
+    assert list(r.entries) == [("B", 1), ("B", 2), ("A", 0), ("A", 1)] and r.nbytes == 400
+    for k in range(2, 6):  # then stops: never its own
+        r.put(("A", k), "clip-a", chunk())
+    assert list(r.entries) == [("A", 0), ("A", 1), ("A", 2), ("A", 3)] and r.nbytes == 400
+    assert r.get(("A", 0)) is not None and not r.get(("A", 0)).flags.writeable and r.get(("A", 4)) is None
+    r.put(("big",), "clip-c", np.zeros(401, np.uint8))  # larger than the budget: not kept, nothing evicted
+    assert len(r.entries) == 4
+
+
 def test_walks_hand_over_their_chunks_and_store_the_same_data(tmp_path, monkeypatch, robots_dir):
     """A clip's and its embodiments' walks (the task bodies, hand and hand-arm) with the
     hand-over equal the same walks decoding every read: array for array, digest for digest;
-    and with it, no stage reads back from the store what its own walk wrote."""
+    and with it, no stage reads back from the store what its own walk wrote, and the second
+    embodiment's walk reuses the clip's frames the first one decoded."""
     from dataclasses import asdict
 
     import handedit.storage.store as store_mod
@@ -209,6 +237,7 @@ def test_walks_hand_over_their_chunks_and_store_the_same_data(tmp_path, monkeypa
     from handedit.flows.curate import code_version, plan_embodiments
     from handedit.sources.synthetic import make_clip_specs
     from handedit.storage import Location
+    from handedit.storage.handoff import REUSED
     from handedit.storage.ledger import iter_units
     from handedit.tasks.clip import ClipJob, EmbodimentJob, run_clip, run_embodiment
 
@@ -220,7 +249,7 @@ def test_walks_hand_over_their_chunks_and_store_the_same_data(tmp_path, monkeypa
 
     def curate(out, mib: int):
         cfg = CurateConfig(out=str(out), clips=[spec], embodiments=["allegro", "xarm_ability"], frames_per_chunk=4,
-                           handoff_mib=mib)
+                           handoff_mib=mib, reuse_mib=mib)
         loc = Location(cfg.out)
         create_or_open_store(loc, cfg.frames_per_chunk, "test")
         embs = [asdict(e) for e in plan_embodiments(cfg.embodiments)]
@@ -229,11 +258,12 @@ def test_walks_hand_over_their_chunks_and_store_the_same_data(tmp_path, monkeypa
         assert not run_clip(ClipJob(loc.store_url, spec.model_dump_json(), cfg.model_dump_json(), scopes, code_version()))["errors"]
         clip_reads = list(read_paths)
         emb_reads = []
+        REUSED.clear()
         for e in embs:
             read_paths.clear()
             result = run_embodiment(EmbodimentJob(loc.store_url, spec.id, e, cfg.model_dump_json(), code_version()))
             assert not result["errors"] and all(not c["failed"] for c in result["stages"].values()), result
-            emb_reads += read_paths
+            emb_reads.append(list(read_paths))
         return open_store(loc.store_url), clip_reads, emb_reads
 
     kept, clip_reads, emb_reads = curate(tmp_path / "kept", 512)
@@ -244,8 +274,11 @@ def test_walks_hand_over_their_chunks_and_store_the_same_data(tmp_path, monkeypa
         return [p for p in paths if p.rsplit("/", 1)[0] in units]
 
     clip_own, emb_own = ("ingest", "registration", "segment"), ("retarget", "render", "composite", "harmonize")
-    assert of(plain_clip_reads, clip_own) and of(plain_emb_reads, emb_own)
-    assert not of(clip_reads, clip_own) and not of(emb_reads, emb_own)
+    assert of(plain_clip_reads, clip_own) and of(sum(plain_emb_reads, []), emb_own)
+    assert not of(clip_reads, clip_own) and not of(sum(emb_reads, []), emb_own)
+    frames = Unit("ingest", spec.id).path + "/frames"
+    assert [r.count(frames) for r in plain_emb_reads] == [2, 2]  # each embodiment decodes the clip's 2 chunks
+    assert [r.count(frames) for r in emb_reads] == [2, 0]  # the second reuses them
     for unit in iter_units(plain):
         for name in plain[unit.path].array_keys():
             if not name.startswith("previews"):
