@@ -21,15 +21,17 @@ What is served equals what is stored: the codecs are lossless, and an entry is t
 array that was written or decoded, made read-only and served as it is (a copy would cost
 what decoding does: most of a read is the first touch of fresh memory); a stage that
 writes into what it read (composite into the background, harmonize into the composite)
-allocates instead when that is shared (``storage.writable``). A walk's own units are read from the store unless this walk wrote them, so a
-damaged object of a chunk stored earlier is still found (``CorruptChunk``); another
-task's chunk is decoded from the store the first time a worker reads it.
+allocates instead when that is shared (``storage.writable``). A walk's own units are
+read from the store unless this walk wrote them, so a damaged object of a chunk stored
+earlier is still found (``CorruptChunk``); another task's chunk is decoded from the store
+the first time a worker reads it.
 """
 
 from __future__ import annotations
 
 import contextlib
 import contextvars
+import threading
 from collections import Counter, OrderedDict
 from collections.abc import Iterable, Iterator, Mapping
 
@@ -39,35 +41,38 @@ _ACTIVE: contextvars.ContextVar["Handoff | None"] = contextvars.ContextVar("hand
 
 
 class Reused:
-    """Decoded chunks of other tasks' units, per worker process, by content (see module doc)."""
+    """Decoded chunks of other tasks' units, per worker process, by content (see module doc);
+    shared by the process's task threads, hence the lock."""
 
     def __init__(self):
         self.entries: OrderedDict[tuple, tuple[str, np.ndarray]] = OrderedDict()  # key -> (clip, array), oldest first
         self.nbytes = 0
-        self.budget = 0
+        self._lock = threading.Lock()
 
     def get(self, key: tuple) -> np.ndarray | None:
         entry = self.entries.get(key)
         return None if entry is None else entry[1]
 
-    def put(self, key: tuple, clip: str, array: np.ndarray) -> None:
-        """Keep ``array`` (not copied: the caller hands it over), evicting other clips' entries,
-        oldest first, to make room; never this clip's own."""
-        if key in self.entries or array.nbytes > self.budget:
-            return
-        for old in [k for k, (c, _) in self.entries.items() if c != clip]:
-            if self.nbytes + array.nbytes <= self.budget:
-                break
-            self.nbytes -= self.entries.pop(old)[1].nbytes
-        if self.nbytes + array.nbytes > self.budget:
-            return
-        array.flags.writeable = False
-        self.entries[key] = (clip, array)
-        self.nbytes += array.nbytes
+    def put(self, key: tuple, clip: str, array: np.ndarray, budget: int) -> None:
+        """Keep ``array`` (not copied: the caller hands it over) within ``budget`` bytes,
+        evicting other clips' entries, oldest first, to make room; never this clip's own."""
+        with self._lock:
+            if key in self.entries or array.nbytes > budget:
+                return
+            for old in [k for k, (c, _) in self.entries.items() if c != clip]:
+                if self.nbytes + array.nbytes <= budget:
+                    break
+                self.nbytes -= self.entries.pop(old)[1].nbytes
+            if self.nbytes + array.nbytes > budget:
+                return
+            array.flags.writeable = False
+            self.entries[key] = (clip, array)
+            self.nbytes += array.nbytes
 
     def clear(self) -> None:
-        self.entries.clear()
-        self.nbytes = 0
+        with self._lock:
+            self.entries.clear()
+            self.nbytes = 0
 
 
 REUSED = Reused()  # the worker process's
@@ -91,19 +96,18 @@ class Handoff:
         self.nbytes = 0
         self.served = 0  # arrays served from memory (bench and tests read it)
         self.digests = {k: dict(v) for k, v in (digests or {}).items()}
-        self.store_key = str(store)
-        REUSED.budget = int(reuse_bytes)
+        self.store_key, self.reuse_budget = str(store), int(reuse_bytes)
 
     def keep(self, store: object, path: str, start: int, arrays: Mapping[str, np.ndarray]) -> None:
         key = (path, start)
         if store is not self.store or self.readers[key] <= 0:
             return
+        self._drop(path, start)  # a chunk written again replaces what was kept of it
         wanted = {n: a for n, a in arrays.items() if n in self.names.get(key, ())}
         size = sum(a.nbytes for a in wanted.values())
         if not wanted or self.nbytes + size > self.budget:
             return
         stop = start + len(next(iter(wanted.values())))
-        self._drop(path, start)  # a chunk written again replaces what was kept of it
         frozen = {}
         for n, a in wanted.items():
             view = a.view()
@@ -115,7 +119,7 @@ class Handoff:
 
     def _reuse_key(self, path: str, name: str, start: int, stop: int) -> tuple | None:
         digest = self.digests.get((path, start, stop), {}).get(name)
-        return None if digest is None or REUSED.budget <= 0 else (self.store_key, path, name, start, stop, digest)
+        return None if digest is None or self.reuse_budget <= 0 else (self.store_key, path, name, start, stop, digest)
 
     def decoded(self, store: object, path: str, clip: str, name: str, start: int, stop: int, value: np.ndarray) -> np.ndarray:
         """``value`` was just read from the store: kept for reuse when it is another task's
@@ -123,7 +127,7 @@ class Handoff:
         key = self._reuse_key(path, name, start, stop) if store is self.store else None
         if key is None:
             return value
-        REUSED.put(key, clip, value)  # read-only from now on, when kept
+        REUSED.put(key, clip, value, self.reuse_budget)  # read-only from now on, when kept
         return value
 
     def get(self, store: object, path: str, name: str, start: int, stop: int) -> np.ndarray | None:

@@ -209,19 +209,18 @@ def test_reused_chunks_keep_the_running_clip_and_evict_other_clips_first():
     longer than the budget keeps its first chunks for the next embodiment), others go oldest first."""
     from handedit.storage.handoff import Reused
 
-    r = Reused()
-    r.budget = 4 * 100
+    r, budget = Reused(), 4 * 100
     chunk = lambda: np.zeros(100, np.uint8)
     for k in range(3):
-        r.put(("B", k), "clip-b", chunk())
+        r.put(("B", k), "clip-b", chunk(), budget)
     for k in range(2):  # clip a: evicts b's, oldest first
-        r.put(("A", k), "clip-a", chunk())
+        r.put(("A", k), "clip-a", chunk(), budget)
     assert list(r.entries) == [("B", 1), ("B", 2), ("A", 0), ("A", 1)] and r.nbytes == 400
     for k in range(2, 6):  # then stops: never its own
-        r.put(("A", k), "clip-a", chunk())
+        r.put(("A", k), "clip-a", chunk(), budget)
     assert list(r.entries) == [("A", 0), ("A", 1), ("A", 2), ("A", 3)] and r.nbytes == 400
     assert r.get(("A", 0)) is not None and not r.get(("A", 0)).flags.writeable and r.get(("A", 4)) is None
-    r.put(("big",), "clip-c", np.zeros(401, np.uint8))  # larger than the budget: not kept, nothing evicted
+    r.put(("big",), "clip-c", np.zeros(401, np.uint8), budget)  # larger than the budget: not kept, nothing evicted
     assert len(r.entries) == 4
 
 

@@ -31,6 +31,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from handedit.camera import CV_TO_GL, Intrinsics, look_at
 from handedit.sources import _hand_model as hm
 from handedit.sources.base import ClipChunk, ClipInfo, SourceError
+from handedit.vision.object_depth import object_depth
 
 if TYPE_CHECKING:
     import pyrender
@@ -708,8 +709,6 @@ class SyntheticSource:
                 kp = frame_keypoints(plan, st) @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
                 valid[i, 0] = kp[:, 2] > 0.01
                 kps[i, 0] = np.where(valid[i, 0][:, None], kp, 0.0)
-        from handedit.vision.object_depth import object_depth
-
         return ClipChunk(
             start=start, frames=out["frames"], world_from_camera=T_wc, keypoints=kps, keypoints_valid=valid,
             frame_ok=np.ones(n, bool), object_mask=out["obj"], object_pose=T_co,
