@@ -257,6 +257,26 @@ def test_restore_scopes_share_their_homographies(monkeypatch):
         rb.restore_background(frames, arms, targets, RestoreConfig(), feature_masks=hands[:2])
 
 
+def test_restore_mutual_nearest_is_opencvs_cross_check():
+    """The matcher's mutual nearest neighbours are exactly OpenCV's cross-checked matches,
+    ties included (duplicated descriptors), whichever side has more descriptors."""
+    import importlib
+
+    rb = importlib.import_module("handedit.vision.restore_background")
+    rng = np.random.default_rng(3)
+    for nj, nt in ((300, 120), (120, 300), (200, 200)):
+        dj = rng.integers(0, 256, (nj, 32), dtype=np.uint8)
+        dt = rng.integers(0, 256, (nt, 32), dtype=np.uint8)
+        dt[: nt // 3] = dj[rng.choice(nj, nt // 3)] ^ (rng.random((nt // 3, 32)) < 0.02).astype(np.uint8)
+        dt[nt // 3: nt // 3 + 10] = dt[:10]  # exact duplicates: ties on both sides
+        dj[-5:] = dj[:5]
+        want = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(dj, dt)
+        ij, it = rb._mutual_nearest(dj, dt)
+        assert len(ij) >= nt // 4
+        np.testing.assert_array_equal(ij, [m.queryIdx for m in want])
+        np.testing.assert_array_equal(it, [m.trainIdx for m in want])
+
+
 def test_restore_matches_are_shared_between_directions():
     """j -> t and t -> j share one mutual matching (and every frame one detection, for the
     process): what the reverse direction gets is exactly what OpenCV's cross-checked

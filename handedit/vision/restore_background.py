@@ -146,12 +146,35 @@ class _Features:
             order = np.argsort(ij, kind="stable")
             return ij[order], it[order]
         if (kj, kt) not in _MATCHED:
-            found = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(self.get(j)[1], self.get(t)[1])
-            _MATCHED[kj, kt] = (np.array([m.queryIdx for m in found], np.int32), np.array([m.trainIdx for m in found], np.int32))
+            _MATCHED[kj, kt] = _mutual_nearest(self.get(j)[1], self.get(t)[1])
             if len(_MATCHED) > _MATCHED_MAX:
                 _MATCHED.popitem(last=False)
         _MATCHED.move_to_end((kj, kt))
         return _MATCHED[kj, kt]
+
+
+def _nearest(query: np.ndarray, train: np.ndarray) -> np.ndarray:
+    """(len(query),) index of each query descriptor's nearest train descriptor (Hamming; the
+    first on ties, as OpenCV's matchers take it)."""
+    return cv2.batchDistance(query, train, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=1)[1].ravel()
+
+
+def _mutual_nearest(dj: np.ndarray, dt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(into dj, into dt) of the mutual nearest neighbours, in dj's order: exactly
+    ``BFMatcher(NORM_HAMMING, crossCheck=True).match(dj, dt)``, a fifth faster on the EgoDex
+    clips. The way back is searched only from the train descriptors some query chose (the
+    cross-check's second full pass searched from all), and the pairing is symmetric, so the
+    smaller set queries (a pair is mutual iff each is the other's first nearest)."""
+    if len(dj) > len(dt):
+        it, ij = _mutual_nearest(dt, dj)
+        order = np.argsort(ij, kind="stable")
+        return ij[order], it[order]
+    fwd = _nearest(dj, dt)
+    chosen = np.unique(fwd[fwd >= 0])
+    back = np.full(len(dt), -1, np.int64)
+    back[chosen] = _nearest(dt[chosen], dj)
+    ij = np.flatnonzero((fwd >= 0) & (back[np.maximum(fwd, 0)] == np.arange(len(dj))))
+    return ij.astype(np.int32), fwd[ij].astype(np.int32)
 
 
 _ROBUST = {"usac_fast": cv2.USAC_FAST, "ransac": cv2.RANSAC}
