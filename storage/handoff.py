@@ -125,9 +125,8 @@ class Handoff:
         """``value`` was just read from the store: kept for reuse when it is another task's
         chunk (and then read-only); returned."""
         key = self._reuse_key(path, name, start, stop) if store is self.store else None
-        if key is None:
-            return value
-        REUSED.put(key, clip, value, self.reuse_budget)  # read-only from now on, when kept
+        if key is not None:
+            REUSED.put(key, clip, value, self.reuse_budget)  # read-only from now on, when kept
         return value
 
     def get(self, store: object, path: str, name: str, start: int, stop: int) -> np.ndarray | None:

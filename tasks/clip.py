@@ -240,7 +240,7 @@ def _handoff(root, nodes, starts: dict, records: dict, budget_mib: int, reuse_mi
     """The walk's hand-over (``storage.handoff``): which of its chunks its nodes read, and
     which arrays of them; and the digests of the other tasks' chunks they read (from the
     records), by which this worker reuses what it decoded of them."""
-    if budget_mib <= 0 and reuse_mib <= 0:
+    if not (budget_mib or reuse_mib):  # (CurateConfig: both >= 0)
         return None
     readers: Counter = Counter()
     names: dict = {}  # (path, start) -> Counter of the arrays read
@@ -253,7 +253,7 @@ def _handoff(root, nodes, starts: dict, records: dict, budget_mib: int, reuse_mi
                 names.setdefault(key, Counter()).update(d.arrays)
             elif (rec := records.get((d.unit, d.chunk))) is not None and rec.get("outcome") == "ok":
                 digests[(d.unit.path, rec["start"], rec["stop"])] = rec.get("outputs", {})
-    return Handoff(root.store, readers, names, max(budget_mib, 0) << 20, digests, max(reuse_mib, 0) << 20)
+    return Handoff(root.store, readers, names, budget_mib << 20, digests, reuse_mib << 20)
 
 
 def _owned_chunk(corrupt: dict, units, f: int) -> list:

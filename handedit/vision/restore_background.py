@@ -142,15 +142,19 @@ class _Features:
         in the order of j's features: exactly ``BFMatcher(crossCheck=True).match(j, t)``."""
         kj, kt = self.image(j)[2], self.image(t)[2]
         if (kt, kj) in _MATCHED:
-            it, ij = _MATCHED[kt, kj]
-            order = np.argsort(ij, kind="stable")
-            return ij[order], it[order]
+            return _reversed(*_MATCHED[kt, kj])
         if (kj, kt) not in _MATCHED:
             _MATCHED[kj, kt] = _mutual_nearest(self.get(j)[1], self.get(t)[1])
             if len(_MATCHED) > _MATCHED_MAX:
                 _MATCHED.popitem(last=False)
         _MATCHED.move_to_end((kj, kt))
         return _MATCHED[kj, kt]
+
+
+def _reversed(it: np.ndarray, ij: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mutual matches (t's, j's) of t -> j as j -> t: (j's, t's) in the order of j's."""
+    order = np.argsort(ij, kind="stable")
+    return ij[order], it[order]
 
 
 def _nearest(query: np.ndarray, train: np.ndarray) -> np.ndarray:
@@ -166,9 +170,7 @@ def _mutual_nearest(dj: np.ndarray, dt: np.ndarray) -> tuple[np.ndarray, np.ndar
     cross-check's second full pass searched from all), and the pairing is symmetric, so the
     smaller set queries (a pair is mutual iff each is the other's first nearest)."""
     if len(dj) > len(dt):
-        it, ij = _mutual_nearest(dt, dj)
-        order = np.argsort(ij, kind="stable")
-        return ij[order], it[order]
+        return _reversed(*_mutual_nearest(dt, dj))
     fwd = _nearest(dj, dt)
     chosen = np.unique(fwd[fwd >= 0])
     back = np.full(len(dt), -1, np.int64)
