@@ -102,7 +102,7 @@ def contact_sheet(path: Path, out: Path, times=(0.1, 0.35, 0.6, 0.85), width=640
         ov[a] = 0.5 * ov[a] + 0.5 * np.array([40, 80, 255])
         ov[hm] = 0.5 * f[hm] + 0.5 * np.array([255, 40, 40])
         row = np.hstack([f, ov.astype(np.uint8), res.background[0]])
-        cv2.putText(row, f"frame {t}  conf {seg.confidence[k]:.2f}  {res.method.split(':')[1]}", (8, 22),
+        cv2.putText(row, f"frame {t}  conf {' '.join(f'{c:.2f}' for c in seg.confidence[k])}  {res.method.split(':')[1]}", (8, 22),
                     cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 2, cv2.LINE_AA)
         rows.append(row)
     out.parent.mkdir(parents=True, exist_ok=True)
