@@ -104,7 +104,7 @@ def check_unit(root: zarr.Group, unit: Unit, present: set[str], deep: bool = Fal
             if not deep:
                 continue
             try:
-                got = digest(read_array(arr, slice(rec.start, rec.stop)))
+                got = digest(read_array(arr, slice(rec.start, rec.stop)), like=rec.outputs[name])
             except CorruptChunk as exc:
                 problems.append(Problem(unit, k, where, rec.start, rec.stop, "unreadable", exc.cause))
                 continue

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, Iterable, Mapping
 
 import numpy as np
+import xxhash
 import zarr
 from zarr.codecs import BloscCodec, BloscShuffle
 
@@ -255,13 +256,25 @@ def read_previews(root: zarr.Group, unit: Unit, side: str) -> dict[str, np.ndarr
             "third": read_array(group["third"], np.s_[:k, :p])}
 
 
-def digest(array: np.ndarray) -> str:
-    """Content fingerprint of an array (shape, dtype and bytes)."""
+DIGEST_SCHEME = "xxh3:"
+
+
+def digest(array: np.ndarray, like: str | None = None) -> str:
+    """Content fingerprint of an array (shape, dtype and bytes): XXH3-128, ``xxh3:``-prefixed.
+
+    A fingerprint here guards against corruption and keys caches (nobody chooses the bytes to
+    collide), so a non-cryptographic 128-bit hash serves, at ~25x blake2b's speed: every image
+    write hashes its frames, 0.03 against 0.67 ms per 640x480 RGB frame. ``like``: a recorded
+    digest whose kind to compute; records written before carry un-prefixed blake2b ones."""
     a = np.ascontiguousarray(array)
-    h = hashlib.blake2b(digest_size=16)
-    h.update(f"{a.dtype.str}{a.shape}".encode())
+    if like is not None and not like.startswith(DIGEST_SCHEME):
+        h = hashlib.blake2b(digest_size=16)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(memoryview(a).cast("B") if a.size else b"")
+        return h.hexdigest()
+    h = xxhash.xxh3_128(f"{a.dtype.str}{a.shape}".encode())
     h.update(memoryview(a).cast("B") if a.size else b"")
-    return h.hexdigest()
+    return DIGEST_SCHEME + h.hexdigest()
 
 
 def write_chunk(root: zarr.Group, unit: Unit, start: int, arrays: Mapping[str, np.ndarray]) -> dict[str, str]:

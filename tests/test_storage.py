@@ -98,6 +98,29 @@ def test_digest_changes_with_content(root):
     assert d1["confidence"] != d2["confidence"] and d1["confidence"] == d3["confidence"]
 
 
+def test_deep_check_recomputes_the_recorded_kind_of_digest(root):
+    """Records written before the XXH3 digests carry blake2b ones: the deep check recomputes
+    the kind each record holds, so an older store still verifies, and a changed frame is a
+    mismatch under either kind."""
+    from handedit.storage.integrity import check_unit, object_keys
+    from handedit.storage.store import digest
+
+    unit = Unit("segment", "c1")
+    create_unit(root, unit, 8, {"H": 4, "W": 4, "S": 1}, F)
+    value = np.arange(4, dtype=np.float32).reshape(4, 1)
+    new = write_chunk(root, unit, 0, {"confidence": value})["confidence"]
+    old = digest(value, like="0" * 32)
+    assert new.startswith("xxh3:") and len(new) == 5 + 32 and len(old) == 32 and old not in new
+    assert digest(value, like=new) == new and digest(value + 1, like=old) != old
+    present = set(object_keys(root[unit.path]["confidence"], 0, 4))
+    for recorded in (new, old):
+        write_records(root, unit, [ChunkRecord("segment", 0, 0, 4, "k", 1, {}, {}, outputs={"confidence": recorded})])
+        assert check_unit(root, unit, present, deep=True) == [], recorded
+        write_chunk(root, unit, 0, {"confidence": value + 1})
+        assert [p.kind for p in check_unit(root, unit, present, deep=True)] == ["mismatch"], recorded
+        write_chunk(root, unit, 0, {"confidence": value})
+
+
 def test_provenance_key_and_records(root):
     k1 = provenance_key("harmonize", 1, {"strength": 0.5}, {"a": "x"})
     assert k1 == provenance_key("harmonize", 1, {"strength": 0.5}, {"a": "x"})
