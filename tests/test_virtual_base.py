@@ -167,6 +167,27 @@ def test_arm_ik_warm_and_cold_agree(assets):
     assert arm.reach > 0.5 and arm.n == 7
 
 
+def test_warm_frames_by_newton_give_ipopts_search(assets, monkeypatch):
+    """Warm IK frames go to projected Newton (arm.NEWTON_MAX_STEP); with it switched off every
+    frame is IPOPT's: the same verdict, ranking and choice, the joint tracks within 1e-5 rad,
+    and most warm frames did take the Newton path."""
+    import importlib
+
+    am = importlib.import_module("handedit.retarget.arm")
+    arm = arm_model("xarm_ability")
+    targets, Tb = _known_sequence(n=8, emb="xarm_ability", q_off=XARM_Q)
+    valid = np.ones(len(targets), bool)
+    taken = []
+    newton = arm.newton.solve
+    monkeypatch.setattr(arm.newton, "solve", lambda *a, **k: taken.append(1) or newton(*a, **k))
+    fast = search_virtual_base(targets, valid, "xarm_ability", CFG, up=UP, init_base=Tb)
+    monkeypatch.setattr(am, "NEWTON_MAX_STEP", -1.0)  # no Newton solution is ever taken
+    slow = search_virtual_base(targets, valid, "xarm_ability", CFG, up=UP, init_base=Tb)
+    assert len(taken) >= 27 * 6 and fast.ranking and fast.chosen == slow.chosen and fast.ranking == slow.ranking
+    assert [c.reason for c in fast.candidates] == [c.reason for c in slow.candidates]
+    np.testing.assert_allclose(np.stack(fast.arm_tracks), np.stack(slow.arm_tracks), atol=1e-5)
+
+
 def test_ready_pose_is_collision_free(assets):
     """Franka's standard ready pose: the compact wrist + hand group must not read as a self-collision."""
     arm = arm_model("panda_allegro")

@@ -14,10 +14,10 @@ of machinery per iteration on them where one cost+gradient+Hessian evaluation co
   steps each, kept inside the bounds by the fraction-to-boundary rule), which is what let
   IPOPT's interior-point method find the lower minima.
 
-Callers keep IPOPT for whatever does not converge here. (Not used for the arm IK yet: on
-warm frames it took 2.3 ms against IPOPT's 6.7, but along a redundant arm's self-motion
-its straight steps crawl from cold seeds, and the IK branches it tracked changed which
-virtual bases were feasible.)
+Callers keep IPOPT for whatever does not converge here. The arm IK (``arm.ArmModel.solve``)
+uses it on warm frames only, and only where it stays near the previous frame's joints: from
+cold seeds its straight steps crawl along a redundant arm's self-motion, and unguarded it
+sometimes changed IK branch where IPOPT did not.
 """
 
 from __future__ import annotations
