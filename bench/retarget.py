@@ -156,6 +156,7 @@ def against_dex_retargeting(clips, dex_python: str, robots_dir: Path, repeats: i
     ours, theirs = float(np.median(ours_ms)), float(np.median(dex_ms))
     print(f"\nagainst dex-retargeting 0.5.0 (position mode, Allegro, {n} frames, same keypoints and first-frame root; "
           f"median of {repeats} alternating runs)")
+    print(f"handedit's Newton evaluates its casadi functions {get_retargeter('allegro', cfg).newton.evaluation.split(' /')[0]}")
     print(f"{'':24}{'ms/frame':>10}{'tip mm':>9}   runs (ms/frame)")
     print(f"{'handedit':24}{ours:>10.2f}{ours_mm:>9.2f}   {' '.join(f'{v:.2f}' for v in ours_ms)}")
     print(f"{'dex-retargeting':24}{theirs:>10.2f}{dex_mm:>9.2f}   {' '.join(f'{v:.2f}' for v in dex_ms)}")

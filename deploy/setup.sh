@@ -9,9 +9,11 @@ extras=""
 [ "${1:-}" = "--test" ] && extras="[test]"
 PY=${PYTHON:-python3.11}
 
-# Debian packages: EGL + Mesa for pyrender offscreen, venv support for the system Python.
+# Debian packages: EGL + Mesa for pyrender offscreen, venv support for the system Python, a C
+# compiler for the retargeting solvers' casadi functions (handedit.retarget.compiled; without
+# one they run interpreted, the same results several times slower).
 need=()
-for pkg in libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libgomp1; do
+for pkg in libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libgomp1 gcc libc6-dev; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need+=("$pkg")
 done
 command -v "$PY" >/dev/null 2>&1 || need+=(python3.11)

@@ -28,6 +28,8 @@ import casadi as ca
 import numpy as np
 from scipy.linalg.lapack import dpotrf, dpotrs
 
+from handedit.retarget.compiled import compiled
+
 INF = 1e19  # |bound| at or beyond this: no bound (casadi/IPOPT's convention is 1e19-1e20)
 
 
@@ -78,8 +80,9 @@ class BoundedNewton:
 
     def __init__(self, name: str, cost: ca.SX, x: ca.SX, p: ca.SX, lo: np.ndarray, hi: np.ndarray, tol: float):
         hess, grad = ca.hessian(cost, x)
-        self._f = ca.Function(f"{name}_f", [x, p], [cost])
-        self._fgh = ca.Function(f"{name}_fgh", [x, p], [cost, grad, ca.densify(hess)])
+        f = compiled(ca.Function(f"{name}_f", [x, p], [cost]))
+        fgh = compiled(ca.Function(f"{name}_fgh", [x, p], [cost, grad, ca.densify(hess)]))
+        self._f, self._fgh, self.evaluation = f.fn, fgh.fn, fgh.how  # handedit.retarget.compiled
         self.lo, self.hi, self.tol = np.asarray(lo, float), np.asarray(hi, float), float(tol)
         self._evaluators: dict = {}
 
