@@ -179,11 +179,18 @@ def test_warm_frames_by_newton_give_ipopts_search(assets, monkeypatch):
     valid = np.ones(len(targets), bool)
     taken = []
     newton = arm.newton.solve
-    monkeypatch.setattr(arm.newton, "solve", lambda *a, **k: taken.append(1) or newton(*a, **k))
+
+    def counted(x0, p):
+        x, f, converged = newton(x0, p)
+        taken.append(converged and np.abs(x - x0).max() <= am.NEWTON_MAX_STEP)
+        return x, f, converged
+
+    monkeypatch.setattr(arm.newton, "solve", counted)
     fast = search_virtual_base(targets, valid, "xarm_ability", CFG, up=UP, init_base=Tb)
+    accepted = sum(taken)
     monkeypatch.setattr(am, "NEWTON_MAX_STEP", -1.0)  # no Newton solution is ever taken
     slow = search_virtual_base(targets, valid, "xarm_ability", CFG, up=UP, init_base=Tb)
-    assert len(taken) >= 27 * 6 and fast.ranking and fast.chosen == slow.chosen and fast.ranking == slow.ranking
+    assert accepted >= 0.8 * 27 * 7 and fast.ranking and fast.chosen == slow.chosen and fast.ranking == slow.ranking
     assert [c.reason for c in fast.candidates] == [c.reason for c in slow.candidates]
     np.testing.assert_allclose(np.stack(fast.arm_tracks), np.stack(slow.arm_tracks), atol=1e-5)
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
+import shlex
 import subprocess
 import tempfile
 from dataclasses import dataclass
@@ -70,7 +71,8 @@ def _build(src: str, path: Path, cc: str) -> None:
     with tempfile.TemporaryDirectory(dir=path.parent, prefix=".build-") as tmp:
         c, so = Path(tmp) / "fn.c", Path(tmp) / "fn.so"
         c.write_text(src)
-        out = subprocess.run([cc, *FLAGS, str(c), "-o", str(so)], capture_output=True, text=True, timeout=COMPILE_TIMEOUT_S)
+        out = subprocess.run([*shlex.split(cc), *FLAGS, str(c), "-o", str(so)], capture_output=True, text=True,
+                             timeout=COMPILE_TIMEOUT_S)
         if out.returncode != 0:
             raise subprocess.SubprocessError(out.stderr.strip()[-500:] or f"exit status {out.returncode}")
         os.chmod(so, 0o755)
