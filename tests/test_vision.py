@@ -233,6 +233,28 @@ def test_restore_background_propagation_beats_inpainting(fit):
     np.testing.assert_array_equal(r.background[0][~hole], frames[t][~hole])  # outside the hole: untouched
 
 
+def test_restore_dilates_each_mask_content_once():
+    """The holes (masks dilated by dilate_px) are computed once per process for each mask's
+    content, read-only: a chunk's window shares frames with its neighbours' windows."""
+    import importlib
+
+    from handedit.vision.masks import grow
+
+    rb = importlib.import_module("handedit.vision.restore_background")
+    rng = np.random.default_rng(5)
+    masks = np.zeros((3, 40, 50), bool)
+    for m in masks:
+        y, x = rng.integers(5, 30, 2)
+        m[y:y + 6, x:x + 9] = True
+    first = rb._holes(masks, 4)
+    for got, m in zip(first, masks):
+        np.testing.assert_array_equal(got, grow(m, 4))
+        assert not got.flags.writeable
+    again = rb._holes(masks[::-1].copy(), 4)  # the same contents, other arrays
+    assert all(a is b for a, b in zip(again, first[::-1]))
+    assert all(a is not b for a, b in zip(rb._holes(masks, 3), first))  # another radius, another entry
+
+
 def test_restore_scopes_share_their_homographies(monkeypatch):
     """The second scope of a clip, aligned on the same feature masks, fits no homography
     again: it reuses the first's, and restores exactly what it restores fitting its own."""

@@ -23,14 +23,16 @@ static object revealed correctly agrees with its neighbours to a few grey levels
 from __future__ import annotations
 
 import hashlib
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import ClassVar, Literal
+from typing import ClassVar, Literal, Sequence
 
 import cv2
 import numpy as np
 import pydantic
+import xxhash
 
 from handedit.images import pixels
 from handedit.reasons import STATUS_DTYPE, Reason
@@ -89,6 +91,34 @@ def _dilate(mask: np.ndarray, px: int) -> np.ndarray:
     return grow(mask, px) if px > 0 else mask.astype(bool)
 
 
+_HOLES: OrderedDict[tuple[bytes, int], np.ndarray] = OrderedDict()
+_HOLES_BYTES = 64 << 20  # ~120 dilated masks at 960x540
+_HOLES_LOCK = threading.Lock()  # a worker's task threads share the cache
+
+
+def _holes(masks: np.ndarray, px: int) -> list[np.ndarray]:
+    """Each mask dilated by ``px`` (read-only), once per process for each mask's content: a
+    chunk's window shares most of its frames with the neighbouring chunks' windows, and the
+    hand-arm scope's features avoid the very holes the hand scope dilated."""
+    out = []
+    for mk in masks:
+        mk = np.ascontiguousarray(mk, dtype=bool)
+        key = (xxhash.xxh3_128_digest(memoryview(mk).cast("B")) + repr(mk.shape).encode(), px)
+        with _HOLES_LOCK:
+            hole = _HOLES.get(key)
+            if hole is not None:
+                _HOLES.move_to_end(key)
+        if hole is None:
+            hole = _dilate(mk, px)
+            hole.flags.writeable = False
+            with _HOLES_LOCK:
+                _HOLES[key] = hole
+                while sum(h.nbytes for h in _HOLES.values()) > _HOLES_BYTES and len(_HOLES) > 1:
+                    _HOLES.popitem(last=False)
+        out.append(hole)
+    return out
+
+
 class _Features:
     """ORB features per frame on its visible background, the mutual matches between two
     frames and the homographies between them, each computed once (the ghosting check reuses
@@ -98,7 +128,7 @@ class _Features:
     next chunk's window detects none on the frames it shares with this one. Mutual
     (cross-checked) matches are symmetric, so j -> t and t -> j share one matching."""
 
-    def __init__(self, frames: np.ndarray, holes: np.ndarray, max_side: int):
+    def __init__(self, frames: np.ndarray, holes: Sequence[np.ndarray], max_side: int):
         self.frames, self.holes = frames, holes
         h, w = frames.shape[1:3]
         self.s = min(1.0, max_side / max(h, w))
@@ -352,7 +382,7 @@ def _checks(img, hole, t, frames, holes, ok, feats, cfg: RestoreConfig) -> Reaso
     return Reason.OK
 
 
-def _ghosting(img: np.ndarray, hole: np.ndarray, t: int, frames: np.ndarray, holes: np.ndarray, ok: np.ndarray,
+def _ghosting(img: np.ndarray, hole: np.ndarray, t: int, frames: np.ndarray, holes: Sequence[np.ndarray], ok: np.ndarray,
               feats: "_Features", cfg: RestoreConfig) -> float | None:
     """Median |grey diff| of the restored hole against the best-agreeing adjacent frame."""
     win = bbox(hole)  # only the hole's pixels are compared: warp into its box
@@ -399,14 +429,14 @@ def restore_background(
         raise ValueError(f"restore_background: frames (m,H,W,3) uint8 and masks (m,H,W) bool, got {frames.shape}, {masks.shape}")
     m, H, W = frames.shape[:3]
     ok = np.ones(m, bool) if frame_ok is None else np.asarray(frame_ok, bool)
-    holes = np.stack([_dilate(mk, cfg.dilate_px) for mk in masks]) if m else masks
+    holes = _holes(masks, cfg.dilate_px)  # (m,) (H,W) bool, read-only
     if feature_masks is None or feature_masks is masks:  # (the hand scope passes its own masks)
         feature_holes = holes
     else:
         feature_masks = np.asarray(feature_masks, dtype=bool)
         if feature_masks.shape != masks.shape:
             raise ValueError(f"restore_background: feature_masks must be {masks.shape} like masks, got {feature_masks.shape}")
-        feature_holes = np.stack([_dilate(mk, cfg.dilate_px) for mk in feature_masks]) if m else feature_masks
+        feature_holes = _holes(feature_masks, cfg.dilate_px)
     feats = _Features(frames, feature_holes, cfg.feature_max_side)
     gray = [None] * m
 
