@@ -23,6 +23,8 @@ fixed size (e.g. 432 x 240; the wrapper resizes). Deformable convolutions need a
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import cv2
 import numpy as np
 
@@ -38,8 +40,8 @@ CONTRACT = Contract(
 )
 
 
-def inpaint_onnx(frames: np.ndarray, holes: np.ndarray, targets: np.ndarray, ok: np.ndarray, cfg) -> tuple[np.ndarray, str]:
-    """Restored ``frames[targets]`` (uint8) and the provenance tag; holes are (m,H,W) bool."""
+def inpaint_onnx(frames: np.ndarray, holes: Sequence[np.ndarray], targets: np.ndarray, ok: np.ndarray, cfg) -> tuple[np.ndarray, str]:
+    """Restored ``frames[targets]`` (uint8) and the provenance tag; holes: m (H,W) bool masks."""
     model = load_model(cfg.model_path, CONTRACT)
     m, H, W = frames.shape[:3]
     mh, mw = model.work_hw("frames", H, W, cfg.work_max_side)
