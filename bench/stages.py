@@ -170,7 +170,9 @@ def repeated(args, n: int) -> list[dict]:
 
 def report(args, runs: list[dict]) -> None:
     """The table of one run, or the medians of several (each ratio the median of the runs' own)."""
-    med = lambda vals: float(np.median(vals))  # noqa: E731
+    def med(vals) -> float:
+        return float(np.median(vals))
+
     n = len(runs)
     stages = [s for s in ("ingest (EgoDex)", *PER_SOURCE, *PER_EMBODIMENT) if all(s in r["ms"] for r in runs)]
     print(f"{args.clips} synthetic clip(s) x {args.frames} frames at {args.size}"

@@ -92,7 +92,7 @@ def _check(fn: ca.Function, ext: ca.Function, points: int = 3) -> None:
     rng = np.random.default_rng(0)
     for _ in range(points):
         args = [rng.uniform(-1, 1, fn.sparsity_in(i).shape) for i in range(fn.n_in())]
-        for a, b in zip(fn(*args) if fn.n_out() > 1 else [fn(*args)], ext(*args) if ext.n_out() > 1 else [ext(*args)]):
+        for a, b in zip(*(f.call(args) for f in (fn, ext))):  # call: a list of outputs, however many
             a, b = np.asarray(a, float), np.asarray(b, float)
             if not np.allclose(a, b, rtol=1e-9, atol=1e-12, equal_nan=True):
                 raise ValueError(f"{ext.name()}: the compiled values differ from the interpreted ones by {np.nanmax(np.abs(a - b)):.3g}")

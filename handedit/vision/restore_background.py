@@ -22,7 +22,6 @@ static object revealed correctly agrees with its neighbours to a few grey levels
 
 from __future__ import annotations
 
-import hashlib
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -94,6 +93,7 @@ def _dilate(mask: np.ndarray, px: int) -> np.ndarray:
 _HOLES: OrderedDict[tuple[bytes, int], np.ndarray] = OrderedDict()
 _HOLES_BYTES = 64 << 20  # ~120 dilated masks at 960x540
 _HOLES_LOCK = threading.Lock()  # a worker's task threads share the cache
+_HOLES_HELD = [0]  # bytes in _HOLES
 
 
 def _holes(masks: np.ndarray, px: int) -> list[np.ndarray]:
@@ -112,9 +112,11 @@ def _holes(masks: np.ndarray, px: int) -> list[np.ndarray]:
             hole = _dilate(mk, px)
             hole.flags.writeable = False
             with _HOLES_LOCK:
-                _HOLES[key] = hole
-                while sum(h.nbytes for h in _HOLES.values()) > _HOLES_BYTES and len(_HOLES) > 1:
-                    _HOLES.popitem(last=False)
+                if key not in _HOLES:  # (another thread may have put it meanwhile)
+                    _HOLES[key] = hole
+                    _HOLES_HELD[0] += hole.nbytes
+                while _HOLES_HELD[0] > _HOLES_BYTES and len(_HOLES) > 1:
+                    _HOLES_HELD[0] -= _HOLES.popitem(last=False)[1].nbytes
         out.append(hole)
     return out
 
@@ -146,8 +148,7 @@ class _Features:
                 size = (int(round(g.shape[1] * self.s)), int(round(g.shape[0] * self.s)))
                 g = cv2.resize(g, size, interpolation=cv2.INTER_AREA)
                 m = cv2.resize(m, size, interpolation=cv2.INTER_NEAREST)
-            h = hashlib.blake2b(digest_size=16)
-            h.update(f"{g.shape}{self.s}".encode())
+            h = xxhash.xxh3_128(f"{g.shape}{self.s}".encode())  # an in-process key
             h.update(g.data)
             h.update(m.data)
             self._images[i] = (g, m, h.digest())

@@ -202,17 +202,19 @@ def _grabcut(bgr: np.ndarray, init: np.ndarray, cfg: SegmentConfig, coarse_to_fi
     return out
 
 
-def _cut(img: np.ndarray, labels: np.ndarray, iters: int, models: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+def _colour_models() -> tuple[np.ndarray, np.ndarray]:
+    """Empty (background, foreground) GMM buffers in OpenCV's layout, for grabCut to fill."""
+    return np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+
+
+def _cut(img: np.ndarray, labels: np.ndarray, iters: int, models: tuple[np.ndarray, np.ndarray] | None = None,
+         frozen: bool = False) -> np.ndarray:
     """GrabCut from the labels (updated in place); the bool foreground. The colour models it
-    learns are written into ``models`` (background, foreground) when given."""
-    bgd, fgd = models if models is not None else (np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64))
-    cv2.grabCut(img, labels, None, bgd, fgd, iters, cv2.GC_INIT_WITH_MASK)
-    return (labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)
-
-
-def _cut_frozen(img: np.ndarray, labels: np.ndarray, models: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """One graph cut of the labels (updated in place) with the given colour models, not relearned."""
-    cv2.grabCut(img, labels, None, models[0], models[1], 1, cv2.GC_EVAL_FREEZE_MODEL)
+    learns are written into ``models`` when given; ``frozen``: one graph cut with ``models``
+    as they are, not relearned."""
+    bgd, fgd = models if models is not None else _colour_models()
+    mode = cv2.GC_EVAL_FREEZE_MODEL if frozen else cv2.GC_INIT_WITH_MASK
+    cv2.grabCut(img, labels, None, bgd, fgd, 1 if frozen else iters, mode)
     return (labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)
 
 
@@ -233,7 +235,7 @@ def _coarse_to_fine(img: np.ndarray, labels: np.ndarray, cfg: SegmentConfig) -> 
     coarse_labels = blocks[:, 0, :, 0].copy()
     coarse_labels[(blocks == cv2.GC_PR_FGD).any(axis=(1, 3)) & (coarse_labels != cv2.GC_FGD)] = cv2.GC_PR_FGD
     coarse_labels[(blocks == cv2.GC_FGD).any(axis=(1, 3))] = cv2.GC_FGD  # seeds are thin: a block with one keeps it
-    models = (np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64))
+    models = _colour_models()
     coarse = _cut(small, coarse_labels, cfg.grabcut_iters, models)
     coarse = cv2.resize(coarse.view(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
     band = grow(coarse, cfg.grabcut_band_px) & grow(~coarse, cfg.grabcut_band_px)
@@ -246,7 +248,7 @@ def _coarse_to_fine(img: np.ndarray, labels: np.ndarray, cfg: SegmentConfig) -> 
         sub = np.ascontiguousarray(labels[win])
         fgs, bgs = (sub == cv2.GC_FGD) | (sub == cv2.GC_PR_FGD), (sub == cv2.GC_BGD) | (sub == cv2.GC_PR_BGD)
         if fgs.any() and bgs.any():
-            fg[win] = _cut_frozen(np.ascontiguousarray(img[win]), sub, models)
+            fg[win] = _cut(np.ascontiguousarray(img[win]), sub, 1, models, frozen=True)
     return fg
 
 
