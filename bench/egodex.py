@@ -2,6 +2,8 @@
 
     .venv/bin/python bench/egodex.py [--root ../shared/data/egodex] [--frames 0:48 | --full]
         [--resize 960x540] [--embodiment allegro --embodiment xarm_ability] [--workers 2] [--figure out.png]
+        [--out runs/egodex]          # keep the run (default: a temporary folder)
+    .venv/bin/python bench/egodex.py --store runs/egodex    # measure an existing run (before/after)
 
 Runs ``handedit curate --source egodex`` on a local 2-worker Dask cluster and prints, from
 the chunk provenance records: ms per source frame for each per-clip stage, ms per frame
@@ -9,6 +11,12 @@ and embodiment for the others (each task's own wall time, at the working resolut
 the kept fraction per clip x embodiment x hand; the registration offsets (px at 1080p);
 and how well the robots cover the human hands they replace (kept frames): the share of a
 replaced hand's mask under its robot, and the share left unchanged (still the human).
+The hand-arm measures (``arm_report``), from EgoDex's own 3-D arm annotations: the forearm
+coverage (the share of the projected forearm capsule, wrist to elbow, 4 cm radius, inside
+the hand-arm mask: a sleeve left beside the robot arm scores low), per clip and side,
+pixel-weighted over the frames the hand is in view; the kept hand-arm frames with more than
+25 % of a robot outside the human arm's corridor (the hand-arm mask plus the capsule, grown
+by 5 % of the image width); and the RESIDUE rejections per clip.
 ``--figure`` writes source | masks | restored background | pseudo-GT (two robot hands) for
 a few frames, made from the run (the EgoDex licence forbids committing it).
 """
@@ -73,6 +81,65 @@ def coverage(root, clip: str, emb: str) -> tuple[float, float]:
     return under / max(total, 1), left / max(total, 1)
 
 
+def arm_report(root) -> dict:
+    """Forearm coverage per clip x side, off-arm kept frames per clip x hand-arm embodiment,
+    RESIDUE rejections per clip (see the module doc)."""
+    import numpy as np
+
+    from handedit.camera import Intrinsics
+    from handedit.reasons import Reason
+    from handedit.embodiments.roster import get_embodiment
+    from handedit.storage import Unit
+    from handedit.storage.layout import clip_path
+    from handedit.vision.arm import coverage, forearm_capsule, limbs, off_arm_shares
+
+    out = {"coverage": {}, "off_arm": {}, "residue": {}}
+    for c in sorted(root["clips"].group_keys()):
+        ing, reg, seg = (root[Unit(s, c).path] for s in ("ingest", "registration", "segment"))
+        if "arm_keypoints" not in reg:
+            continue
+        intr = Intrinsics(**ing.attrs["info"]["intrinsics"])
+        kp, arm, arm_ok = reg["keypoints"][:], reg["arm_keypoints"][:], ing["arm_valid"][:]
+        hs, handarm = reg["hand_status"][:], seg["handarm_mask"]
+        shape = (intr.height, intr.width)
+        for k, side in enumerate(ing.attrs["hands"]):
+            inside = total = 0
+            for t in np.flatnonzero(hs[:, k] == Reason.OK):
+                if not arm_ok[t, k, 0]:
+                    continue
+                cap = forearm_capsule(kp[t, k, 0], arm[t, k, 0], intr, shape)
+                if coverage(handarm[t, k], cap) is None:
+                    continue
+                inside += int((handarm[t, k] & cap).sum())
+                total += int(cap.sum())
+            out["coverage"][(c, side)] = inside / total if total else float("nan")
+        out["residue"][c] = int(sum((root[Unit("restore_background", c, scope=s).path]["status"][:] == Reason.RESIDUE).sum()
+                                    for s in ("hand", "hand_arm") if Unit("restore_background", c, scope=s).path in root))
+        L = limbs(kp, arm, arm_ok)
+        embs = root[f"{clip_path(c)}/embodiments"] if f"{clip_path(c)}/embodiments" in root else None
+        for emb in sorted(embs.group_keys()) if embs is not None else []:
+            if get_embodiment(emb).track != "hand_arm":
+                continue
+            qc = root[Unit("qc", c, embodiment=emb).path]
+            kept = (qc["status"][:] == Reason.OK)[:, None] & (qc["hand_status"][:] == Reason.OK)
+            unit = Unit("composite", c, embodiment=emb)
+            shares = off_arm_shares(root[unit.path]["robot_mask"][:], handarm[:], L, intr, kept)
+            out["off_arm"][(c, emb)] = (int((shares > 0.25).sum()), int(kept.sum()))
+    return out
+
+
+def print_arm_report(rep: dict) -> None:
+    print("\nforearm coverage (share of the 4 cm forearm capsule inside the hand-arm mask), per clip and hand:")
+    for (c, side), v in rep["coverage"].items():
+        print(f"  {c:<34} {side:<6} {v:6.2f}")
+    print("\nkept hand-arm frame-sides with > 25 % of the robot outside the arm corridor:")
+    for (c, e), (bad, n) in rep["off_arm"].items():
+        print(f"  {c:<34} {e:<14} {bad:>4} of {n}")
+    print("\nRESIDUE rejections (restore_background, both scopes), per clip:")
+    for c, n in rep["residue"].items():
+        print(f"  {c:<34} {n:>4}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--root", default=str(REPO.parent / "shared" / "data" / "egodex"))
@@ -82,7 +149,19 @@ def main() -> None:
     ap.add_argument("--embodiment", action="append")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--figure", help="write a contact sheet PNG here (not to be committed: CC BY-NC-ND data)")
+    ap.add_argument("--out", help="keep the run in this folder (default: a temporary one)")
+    ap.add_argument("--store", help="measure this existing run (its folder) instead of curating")
     args = ap.parse_args()
+    if args.store:
+        from handedit.storage import open_store
+        from handedit.storage.summary import run_summary
+
+        root = open_store(args.store)
+        for u in run_summary(root)["units"]:
+            print(f"  {u['clip']:<34} {u['embodiment']:<14} {str(u['side']):<6} {u['kept']:>4}/{u['frames']:<4} "
+                  f"{u['kept'] / max(u['frames'], 1):6.2f}")
+        print_arm_report(arm_report(root))
+        return
     os.environ.setdefault("HANDEDIT_ASSET_DIRS", str(REPO.parent / "shared" / "assets" / "robots"))
 
     import numpy as np
@@ -99,7 +178,7 @@ def main() -> None:
     embs = args.embodiment or ["allegro", "xarm_ability"]
     w, h = (int(v) for v in args.resize.split("x"))
     tree = EgoDexTree(root=Path(args.root), frames=None if args.full else parse_frames(args.frames), resize=(w, h))
-    tmp = Path(tempfile.mkdtemp(prefix="handedit-egodex-"))
+    tmp = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="handedit-egodex-"))
     os.environ.setdefault("PREFECT_HOME", str(tmp / "prefect"))
     with prefect_test_harness(server_startup_timeout=180), \
             LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True, host="127.0.0.1",
@@ -135,6 +214,7 @@ def main() -> None:
         for e in embs:
             under, left = coverage(root, c, e)
             print(f"  {c:<34} {e:<14} {under:6.2f} {left:6.3f}")
+    print_arm_report(arm_report(root))
     if args.figure:
         from figure import contact_sheet
 

@@ -106,7 +106,7 @@ def clip_nodes(clip: ClipPlan, scopes, frames_per_chunk: int, restore_window: in
         else:
             reg_deps = [Dep(ingest, k, ("frames", "keypoints", "keypoints_valid", "status", *arm))]
         nodes.append(Node(registration, k, s, e, reg_deps, base_ctx, camera))
-        seg_deps = [Dep(ingest, k, ("frames", "status")), Dep(registration, k, (*reg_out, *arm[:1]))]
+        seg_deps = [Dep(ingest, k, ("frames", "status", *arm[1:])), Dep(registration, k, (*reg_out, *arm[:1]))]
         nodes.append(Node(segment, k, s, e, seg_deps, base_ctx, camera))
     for scope in sorted(set(scopes)):
         restore = Unit("restore_background", c, scope=scope)
@@ -139,6 +139,8 @@ def embodiment_nodes(clip: ClipPlan, emb: str, scope: str, frames_per_chunk: int
                      Dep(segment, k, (SCOPE_MASK[scope], "hand_status")), Dep(ingest, k, ("frames",)),
                      Dep(registration, k, ("keypoints", "keypoints_valid"))]
         comp_ctx = {**base_ctx, "scope": scope}
+        if seq and clip.has_arm:  # the tracked arm widens the corridor the off-arm check allows
+            comp_deps += [Dep(registration, k, ("arm_keypoints",)), Dep(ingest, k, ("arm_valid",))]
         if clip.has_object:  # the object's mask and depth (occlusion)
             comp_deps.append(Dep(ingest, k, ("object_mask", "object_depth")))
         upstream = [(ingest, k), (registration, k), (segment, k), (restore, k), (ret, rk), (ren, k), (comp, k), (harm, k)]

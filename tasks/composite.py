@@ -4,7 +4,7 @@ Occlusion by the object: the source's object mask always; plus the object's dept
 the source knows its geometry (ingest stored it, once per source frame: its mesh and
 pose rasterized, ``handedit.vision.object_depth``), so the nearer surface wins per pixel.
 Hands whose robot is not drawn get their source pixels back; replaced hands are checked
-for visible human residue.
+for visible human residue, and hand-arm robots for lying where the human arm was (OFF_ARM).
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from handedit.storage.layout import SCOPE_MASK
 from handedit.tasks._options import stage_options
 from handedit.tasks.common import ChunkJob, StageOutput, execute
 from handedit.vision.composite import CompositeConfig, composite as composite_frames, robot_windows
+from handedit.vision.arm import limbs, off_arm_shares
 from handedit.vision.object_depth import object_occluder
 
 
@@ -45,12 +46,25 @@ def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
                               robot_side=ren["robot_side"], replace=replace, source=src["frames"], human_mask=seg[SCOPE_MASK[scope]],
                               keypoints_2d=project(reg["keypoints"], intr), keypoints_valid=reg["keypoints_valid"], windows=windows,
                               out=writable(bg["background"]))  # read for this chunk only: composited in place
+    own = result.hand_status
+    extra = {}
+    if scope == "hand_arm":  # base plausibility: the robot arm where the human arm was
+        arm = job.context.get("has_arm", False)
+        limbs_3d = None
+        if arm:
+            tracked = read_chunk(root, Unit("registration", clip), ["arm_keypoints"], a, b)["arm_keypoints"]
+            limbs_3d = limbs(reg["keypoints"], tracked, read_chunk(root, Unit("ingest", clip), ["arm_valid"], a, b)["arm_valid"])
+        checked = replace & (own == Reason.OK)
+        off = off_arm_shares(result.robot_mask, seg[SCOPE_MASK[scope]], limbs_3d, intr, checked, cfg.arm_corridor_frac)
+        own = np.where(checked & (off > cfg.max_off_arm), Reason.OFF_ARM, own).astype(np.int16)
+        extra["off_arm_max"] = [None if not np.isfinite(off[:, k]).any() else float(np.nanmax(off[:, k]))
+                                for k in range(off.shape[1])]
     upstream = ren["hand_status"]
-    hand_status = np.where(replace, result.hand_status,
+    hand_status = np.where(replace, own,
                            np.where(upstream == Reason.ABSENT, Reason.ABSENT, Reason.UPSTREAM)).astype(np.int16)
     method = result.method + ("+object-mesh-depth" if occluder_depth is not None else "")
     res = result.residue
-    extra = {"residue_max": [None if not np.isfinite(res[:, k]).any() else float(np.nanmax(res[:, k])) for k in range(res.shape[1])]}
+    extra["residue_max"] = [None if not np.isfinite(res[:, k]).any() else float(np.nanmax(res[:, k])) for k in range(res.shape[1])]
     return StageOutput({"image": result.image, "robot_mask": result.robot_mask}, combine(per_frame(hand_status), ready),
                        method=method, hand_status=hand_status, extra=extra)
 

@@ -5,7 +5,9 @@ skeleton (drawn thin) is a near-certain foreground seed and its hull bounds wher
 hand can be. GrabCut then learns foreground/background colour mixtures per frame and
 snaps to the real boundary. The forearm is not in the keypoints: it is searched in a
 corridor from the wrist along the forearm direction (away from the knuckles) up to the
-frame border and grown by the skin model. Without keypoints (a raw video) the skin
+frame border and grown by the skin model; where the source tracks the arm in 3-D (EgoDex:
+elbow, shoulder), the whole arm in view, skin or sleeve, is cut inside its projected
+capsules instead (``_segment_arm``, ``handedit.vision.arm``). Without keypoints (a raw video) the skin
 model alone proposes the largest skin components and GrabCut refines them; the hand is
 then split from the arm at the narrowest point (the wrist) of the component's width
 profile, which is a heuristic, so these frames get a lower confidence.
@@ -47,8 +49,10 @@ import cv2
 import numpy as np
 import pydantic
 
+from handedit.camera import Intrinsics, project
 from handedit.keypoints import MCPS, N_JOINTS, PARENT, WRIST
 from handedit.metrics.similarity import bbox
+from handedit.vision.arm import capsule, clip_near
 from handedit.vision.masks import disk, grow
 from handedit.reasons import STATUS_DTYPE, Reason, per_frame
 from handedit.vision.skin import SkinModel, colour_gaussian, gaussian_loglik, prior_rule, to_ycrcb
@@ -58,7 +62,7 @@ _UNKNOWN_STABILITY = 0.75  # stability term for a frame without usable neighbour
 
 
 class SegmentConfig(pydantic.BaseModel):
-    VERSION: ClassVar[int] = 5
+    VERSION: ClassVar[int] = 6
     model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
 
     method: Literal["classical", "onnx"] = "classical"
@@ -86,6 +90,11 @@ class SegmentConfig(pydantic.BaseModel):
     seed_min_skin: float = pydantic.Field(0.1, ge=0, lt=1)  # skeleton seeds below this skin prob are not "sure"
     skin_gate: float = pydantic.Field(0.02, ge=0, lt=1)  # keypoint frames: fg pixels below this skin prob are dropped
     no_keypoint_factor: float = pydantic.Field(0.8, gt=0, le=1)
+    # a tracked arm (the source's 3-D wrist, elbow, shoulder): capsule radii in metres (_segment_arm)
+    arm_core_m: float = pydantic.Field(0.02, gt=0, description="sure arm: this close to the limb's axis")
+    arm_core_start_m: float = pydantic.Field(0.04, ge=0, description="the sure core starts this far up from the wrist")
+    arm_inner_m: float = pydantic.Field(0.05, gt=0, description="probably arm (a forearm with its sleeve)")
+    arm_outer_m: float = pydantic.Field(0.12, gt=0, description="probably background out to here, background beyond")
 
     @pydantic.model_validator(mode="after")
     def _model_needs_path(self) -> "SegmentConfig":
@@ -268,7 +277,7 @@ class _KpFrame:
     valid: np.ndarray  # (21,) bool
     scale: float
     forearm: np.ndarray | None
-    arm: np.ndarray | None = None  # (m,2) working px: wrist -> elbow -> ... when the source tracks the arm
+    limb: np.ndarray | None = None  # (m,3) camera frame: wrist -> elbow -> ... when the source tracks the arm
 
 
 def _handlike(ycc: np.ndarray, sure: np.ndarray, hand_roi: np.ndarray, s: float) -> Callable[[np.ndarray, np.ndarray], np.ndarray] | None:
@@ -320,29 +329,50 @@ def _arm_direction(handlike: Callable[[np.ndarray, np.ndarray], np.ndarray] | No
     return best_dir if best >= 0.5 else kp.forearm
 
 
-def _arm_corridor(shape: tuple[int, int], kp: _KpFrame, cfg: SegmentConfig) -> np.ndarray | None:
-    """The tracked arm (wrist -> elbow -> shoulder, then on to the border) as a thick band."""
-    if kp.arm is None or len(kp.arm) < 2:
-        return None
-    m = np.zeros(shape, np.uint8)
-    pts = [kp.arm[0], *kp.arm[1:]]
-    d = pts[-1] - pts[-2]
-    if np.linalg.norm(d) > 1e-3:  # the arm leaves the view: extend its last segment to the border
-        pts.append(pts[-1] + d / np.linalg.norm(d) * float(shape[0] + shape[1]))
-    width = max(2, int(round(cfg.forearm_width * kp.scale)))
-    for a, b in zip(pts[:-1], pts[1:]):
-        cv2.line(m, _ipt(a), _ipt(b), 1, width)
-    return m.astype(bool)
+def _segment_arm(bgr: np.ndarray, hand_fg: np.ndarray, kp: _KpFrame, intr: Intrinsics, cfg: SegmentConfig,
+                 others: np.ndarray | None) -> np.ndarray:
+    """The tracked arm in view, skin or cloth: GrabCut inside the projected 3-D capsules.
+
+    A sleeve is not skin, so nothing here asks for skin colour: the arm's core (a thin
+    capsule past the wrist) and the hand are sure foreground, a forearm-wide capsule is
+    probably foreground, a wider one (sleeves, keypoint error) probably background, and
+    everything beyond is background. The colour models GrabCut learns from these decide
+    where the sleeve ends (``handedit.vision.arm`` for the capsules)."""
+    shape = hand_fg.shape
+    outer = capsule(kp.limb, intr, cfg.arm_outer_m, shape)
+    if not outer.any():
+        return hand_fg
+    core = capsule(kp.limb, intr, cfg.arm_core_m, shape, start_m=cfg.arm_core_start_m) & ~hand_fg
+    if not core.any():  # the forearm leaves the view right past the wrist: seed from the wrist on
+        core = capsule(kp.limb, intr, cfg.arm_core_m, shape) & ~hand_fg
+    if not core.any():
+        return hand_fg
+    init = np.full(shape, cv2.GC_BGD, np.uint8)
+    init[outer] = cv2.GC_PR_BGD
+    init[capsule(kp.limb, intr, cfg.arm_inner_m, shape)] = cv2.GC_PR_FGD
+    init[core] = cv2.GC_FGD
+    # the hand is arm too, but its skin must not teach the arm's colour model (a beige table
+    # is skin-like): it takes the core's median colour and stays sure foreground
+    img = bgr.copy()
+    img[hand_fg] = np.median(bgr[core], axis=0).astype(np.uint8)
+    init[hand_fg] = cv2.GC_FGD
+    if others is not None:
+        init[others] = cv2.GC_BGD
+    fg = _grabcut(img, init, cfg)
+    fg = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_CLOSE, disk(1)).astype(bool)
+    if others is not None:
+        fg &= ~others
+    return _keep_touching(fg | hand_fg, (core & fg) | hand_fg)
 
 
 def _segment_kp(bgr: np.ndarray, ycc: np.ndarray, prob: np.ndarray, kp: _KpFrame, cfg: SegmentConfig,
-                others: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                others: np.ndarray | None = None, intr: Intrinsics | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(handarm, hand) bool masks for a frame seeded by its keypoints.
 
     ``others``: pixels of the frame's other hands (their skeletons), definite background
-    here so one hand's mask never swallows the other. With a tracked arm (``kp.arm``) the
-    forearm is not searched: its band is a candidate region whatever its colour (sleeves are
-    not skin), seeded along its centre line.
+    here so one hand's mask never swallows the other. With a tracked arm (``kp.limb`` and the
+    working-resolution ``intr``) the forearm is not searched by skin colour: the arm is cut
+    inside its projected 3-D capsules whatever its colour (``_segment_arm``: sleeves).
     """
     shape = prob.shape
     s = kp.scale
@@ -360,11 +390,9 @@ def _segment_kp(bgr: np.ndarray, ycc: np.ndarray, prob: np.ndarray, kp: _KpFrame
     roi = grow(likely, cfg.roi_margin * s)
     corridor = np.zeros(shape, np.uint8)
     handlike = _handlike(ycc, sure, roi, s)
-    band = _arm_corridor(shape, kp, cfg)
-    arm_dir = kp.forearm if band is not None or cfg.arm_search_deg <= 0 else _arm_direction(handlike, kp, cfg, shape)
-    if band is not None:
-        roi |= band
-    elif arm_dir is not None:
+    tracked = kp.limb is not None and intr is not None
+    arm_dir = kp.forearm if tracked or cfg.arm_search_deg <= 0 else _arm_direction(handlike, kp, cfg, shape)
+    if arm_dir is not None:
         far = kp.pts[WRIST] + arm_dir * float(shape[0] + shape[1])
         cv2.line(corridor, _ipt(kp.pts[WRIST]), _ipt(far), 1, max(2, int(round(cfg.forearm_width * s))))
         roi |= grow(corridor, 0.3 * s)
@@ -381,27 +409,21 @@ def _segment_kp(bgr: np.ndarray, ycc: np.ndarray, prob: np.ndarray, kp: _KpFrame
         ys, xs = np.nonzero(init == cv2.GC_PR_FGD)
         other = ~handlike(ys, xs)
         init[ys[other], xs[other]] = cv2.GC_PR_BGD
-    colourless = np.zeros(shape, bool)  # the tracked arm's band: not gated by skin colour
-    if band is not None:
-        colourless = band & ~likely
-        init[colourless] = cv2.GC_PR_FGD
-        centre = np.zeros(shape, np.uint8)
-        for a, b in zip(kp.arm[:-1], kp.arm[1:]):
-            cv2.line(centre, _ipt(a), _ipt(b), 1, max(1, int(round(0.08 * s))))
-        sure = sure | (centre.astype(bool) & ~grow(likely, 0.3 * s))
     init[sure] = cv2.GC_FGD
-    init[roi & (prob < cfg.skin_gate) & (init != cv2.GC_FGD) & ~colourless] = cv2.GC_BGD
+    init[roi & (prob < cfg.skin_gate) & (init != cv2.GC_FGD)] = cv2.GC_BGD
     if others is not None:
         init[others & ~sure] = cv2.GC_BGD
     fg = _grabcut(bgr, init, cfg)
     fg = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_CLOSE, disk(1)).astype(bool)
-    fg &= (prob >= cfg.skin_gate) | sure | colourless
+    fg &= (prob >= cfg.skin_gate) | sure
     if others is not None:
         fg &= ~others
     fg = _keep_touching(fg, sure)
     if kp.forearm is None:
         return fg, fg
     hand = fg & _half_plane(shape, kp.pts[WRIST], kp.forearm, cfg.wrist_margin * s)
+    if tracked:
+        fg = _segment_arm(bgr, fg, kp, intr, cfg, others)
     return fg, hand
 
 
@@ -561,18 +583,22 @@ def _split_overlaps(masks: list[np.ndarray | None], skeletons: list[np.ndarray |
     return out
 
 
-def _frame_kp(pts: np.ndarray, valid: np.ndarray, arm: np.ndarray | None, shape, cfg: SegmentConfig) -> _KpFrame | None:
+def _frame_kp(pts: np.ndarray, valid: np.ndarray, limb: np.ndarray | None, intr: Intrinsics | None, shape,
+              cfg: SegmentConfig) -> _KpFrame | None:
     if not _usable(pts, valid, shape, cfg):
         return None
     scale = _hand_scale(pts, valid)
     fore = _forearm_dir(pts, valid)
     line = None
-    if arm is not None:
-        ok = np.isfinite(arm).all(-1)
-        if ok.any() and ok[0]:
-            line = np.concatenate([pts[WRIST][None], arm[: int(np.argmin(ok)) if not ok.all() else len(arm)]])
-            d = line[1] - line[0]
-            if np.linalg.norm(d) > 1e-3:
+    if limb is not None and intr is not None:
+        ok = np.isfinite(limb).all(-1)
+        n_ok = int(np.argmin(ok)) if not ok.all() else len(limb)
+        if n_ok >= 2:
+            line = limb[:n_ok]
+            seg = clip_near(line[0], line[1])  # the forearm's image direction, in front of the camera
+            uv = None if seg is None else project(np.stack(seg), intr)
+            d = None if uv is None else uv[1] - uv[0]
+            if d is not None and np.isfinite(d).all() and np.linalg.norm(d) > 1e-3:
                 fore = d / np.linalg.norm(d)
     return _KpFrame(np.nan_to_num(pts), valid.copy(), scale, fore, line)
 
@@ -584,14 +610,17 @@ def segment(
     cfg: SegmentConfig = SegmentConfig(),
     *,
     present: np.ndarray | None = None,
-    arm_2d: np.ndarray | None = None,
+    limbs: np.ndarray | None = None,
+    intr: Intrinsics | None = None,
 ) -> SegmentResult:
     """Per-hand hand and hand-arm masks for a chunk of frames (see the module doc).
 
     ``keypoints_2d`` (n,S,21,2) pixels and ``keypoints_valid`` (n,S,21): S hands per frame
     (None: no keypoints, one hand found by skin colour). ``present`` (n,S): sides in view
-    (default: those with usable keypoints). ``arm_2d`` (n,S,m,2): the tracked arm's joints
-    projected (elbow, shoulder, ...; NaN where unknown), which replaces the forearm search.
+    (default: those with usable keypoints). ``limbs`` (n,S,m,3): the tracked arm as a
+    camera-frame polyline wrist -> elbow -> shoulder (NaN past the last tracked joint), with
+    the frames' ``intr``: the arm is then cut inside its projected capsules whatever its
+    colour (sleeves), not searched by skin colour.
     """
     frames = np.asarray(frames)
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
@@ -626,14 +655,16 @@ def segment(
     ycc = [to_ycrcb(f) for f in small]
     bgr = [cv2.cvtColor(f, cv2.COLOR_RGB2BGR) for f in small]
     blank = np.array([float(y[..., 0].std()) < cfg.blank_std for y in ycc], bool)
-    arm_s = None if arm_2d is None else np.asarray(arm_2d, np.float64) * s
+    intr_s = None if limbs is None or intr is None else intr.scaled(*ws)
+    limbs = None if intr_s is None else np.asarray(limbs, np.float64)
 
     kps: list[list[_KpFrame | None]] = []
     for i in range(n):
         row = []
         for k in range(S):
             ok = not blank[i] and (present is None or bool(present[i, k]))
-            row.append(_frame_kp(kp2d[i, k] * s, kval[i, k], None if arm_s is None else arm_s[i, k], ycc[i].shape[:2], cfg)
+            row.append(_frame_kp(kp2d[i, k] * s, kval[i, k], None if limbs is None else limbs[i, k], intr_s,
+                                 ycc[i].shape[:2], cfg)
                        if ok else None)
         kps.append(row)
     # Without keypoints (one hand), the skin-components path finds it.
@@ -658,7 +689,7 @@ def segment(
                 if kp is None:
                     continue
                 others = [t for j, t in enumerate(thick) if j != k and t is not None]
-                a, b = _segment_kp(bgr[i], ycc[i], p, kp, cfg, np.any(others, axis=0) if others else None)
+                a, b = _segment_kp(bgr[i], ycc[i], p, kp, cfg, np.any(others, axis=0) if others else None, intr_s)
                 handarm[i][k], hand[i][k] = a, b
             handarm[i] = _split_overlaps(handarm[i], skel[i])
             hand[i] = [h & a if h is not None else None for h, a in zip(_split_overlaps(hand[i], skel[i]), handarm[i])]
