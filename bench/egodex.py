@@ -17,8 +17,9 @@ the hand-arm mask: a sleeve left beside the robot arm scores low), per clip and 
 pixel-weighted over the frames the hand is in view; the kept hand-arm frames with more than
 25 % of a robot outside the human arm's corridor (the hand-arm mask plus the capsule, grown
 by 5 % of the image width); and the RESIDUE rejections per clip.
-``--figure`` writes source | masks | restored background | pseudo-GT (two robot hands) for
-a few frames, made from the run (the EgoDex licence forbids committing it).
+``--figure`` writes source | masks | restored background | pseudo-GT (two robots) for a few
+frames, one sheet per embodiment (``NAME-<embodiment>.png`` when there are several), made
+from the run (the EgoDex licence forbids committing it).
 """
 
 from __future__ import annotations
@@ -140,6 +141,16 @@ def print_arm_report(rep: dict) -> None:
         print(f"  {c:<34} {n:>4}")
 
 
+def figures(root, clips: list[str], embs: list[str], path: Path) -> None:
+    """One contact sheet per embodiment (``path``, or ``path-<embodiment>`` for several)."""
+    from figure import contact_sheet
+
+    for e in embs:
+        out = path if len(embs) == 1 else path.with_name(f"{path.stem}-{e}{path.suffix}")
+        if contact_sheet(root, clips, e, out):
+            print(f"\nfigure: {out} (source | masks: left blue, right red | restored background | pseudo-GT, {e})")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--root", default=str(REPO.parent / "shared" / "data" / "egodex"))
@@ -161,6 +172,10 @@ def main() -> None:
             print(f"  {u['clip']:<34} {u['embodiment']:<14} {str(u['side']):<6} {u['kept']:>4}/{u['frames']:<4} "
                   f"{u['kept'] / max(u['frames'], 1):6.2f}")
         print_arm_report(arm_report(root))
+        if args.figure:
+            clips = sorted(root["clips"].group_keys())
+            embs = args.embodiment or sorted({u["embodiment"] for u in run_summary(root)["units"] if u["embodiment"]})
+            figures(root, clips, embs, Path(args.figure))
         return
     os.environ.setdefault("HANDEDIT_ASSET_DIRS", str(REPO.parent / "shared" / "assets" / "robots"))
 
@@ -216,11 +231,7 @@ def main() -> None:
             print(f"  {c:<34} {e:<14} {under:6.2f} {left:6.3f}")
     print_arm_report(arm_report(root))
     if args.figure:
-        from figure import contact_sheet
-
-        if contact_sheet(root, clips, embs[0], Path(args.figure)):
-            print(f"\nfigure: {args.figure} (source | masks: left blue, right red | restored background | pseudo-GT, {embs[0]})")
-
+        figures(root, clips, embs, Path(args.figure))
 
 if __name__ == "__main__":
     main()

@@ -1,8 +1,9 @@
-"""A contact sheet of a curated store: source | hand masks | restored background | pseudo-GT.
+"""A contact sheet of a curated store: source | masks | restored background | pseudo-GT.
 
     .venv/bin/python bench/figure.py STORE_DIR [--embodiment allegro] [--per-clip 2] --out sheet.png
 
-Left hands' masks are blue, right hands' red; kept frames only. Used for the README's
+Left hands' masks are blue, right hands' red; kept frames only. The masks and background are
+those of the embodiment's track (hand, or hand-arm: the whole arm removed). Used for the README's
 synthetic-clip figure and by ``bench/egodex.py --figure`` (a figure of EgoDex frames is
 made at run time only: the EgoDex licence, CC BY-NC-ND, does not allow committing it).
 """
@@ -17,9 +18,12 @@ def contact_sheet(root, clips: list[str], emb: str, out: Path, per_clip: int = 2
     import cv2
     import numpy as np
 
+    from handedit.embodiments.roster import get_embodiment
     from handedit.reasons import Reason
     from handedit.storage import Unit
+    from handedit.storage.layout import SCOPE_MASK
 
+    scope = get_embodiment(emb).track  # the masks and background this embodiment's composites used
     rows = []
     for clip in clips:
         kept = np.flatnonzero(root[Unit("qc", clip, embodiment=emb).path]["status"][:] == Reason.OK)
@@ -27,11 +31,11 @@ def contact_sheet(root, clips: list[str], emb: str, out: Path, per_clip: int = 2
             f = root[Unit("ingest", clip).path]["frames"][t]
             hands = root[Unit("ingest", clip).path].attrs.get("hands") or ["right"]
             masks = f.astype(np.float32)
-            seg = root[Unit("segment", clip).path]["handarm_mask"][t]
+            seg = root[Unit("segment", clip).path][SCOPE_MASK[scope]][t]
             for k, side in enumerate(hands):
                 col = np.array((40, 80, 255) if side == "left" else (255, 60, 40))
                 masks[seg[k]] = 0.5 * masks[seg[k]] + 0.5 * col
-            bg = root[Unit("restore_background", clip, scope="hand").path]["background"][t]
+            bg = root[Unit("restore_background", clip, scope=scope).path]["background"][t]
             gt = root[Unit("harmonize", clip, embodiment=emb).path]["image"][t]
             rows.append(np.hstack([f, masks.astype(np.uint8), bg, gt]))
     if not rows:

@@ -20,7 +20,7 @@ from handedit.storage.layout import SCOPE_MASK
 from handedit.tasks._options import stage_options
 from handedit.tasks.common import ChunkJob, StageOutput, execute
 from handedit.vision.composite import CompositeConfig, composite as composite_frames, robot_windows
-from handedit.vision.arm import limbs, off_arm_shares
+from handedit.vision.arm import limbs, off_arm_shares, off_arm_status
 from handedit.vision.object_depth import object_occluder
 
 
@@ -30,9 +30,11 @@ def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     bg = read_chunk(root, Unit("restore_background", clip, scope=scope), ["background", "status"], a, b)
     ren = read_chunk(root, Unit("render", clip, embodiment=emb), ["rgba", "robot_side", "hand_status", "status"], a, b)
     seg = read_chunk(root, Unit("segment", clip), [SCOPE_MASK[scope], "hand_status"], a, b)
-    reg = read_chunk(root, Unit("registration", clip), ["keypoints", "keypoints_valid"], a, b)
+    tracked_arm = scope == "hand_arm" and job.context.get("has_arm", False)  # widens the off-arm corridor
+    reg = read_chunk(root, Unit("registration", clip), ["keypoints", "keypoints_valid", *(["arm_keypoints"] if tracked_arm else [])],
+                     a, b)
     intr = Intrinsics(**job.context["intrinsics"])
-    src = read_chunk(root, Unit("ingest", clip), ["frames"], a, b)
+    src = read_chunk(root, Unit("ingest", clip), ["frames", *(["arm_valid"] if tracked_arm else [])], a, b)
     cfg = CompositeConfig(**job.params)
     windows = robot_windows(ren["rgba"], cfg)
     occluder, occluder_depth = None, None
@@ -47,26 +49,24 @@ def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
                               keypoints_2d=project(reg["keypoints"], intr), keypoints_valid=reg["keypoints_valid"], windows=windows,
                               out=writable(bg["background"]))  # read for this chunk only: composited in place
     own = result.hand_status
-    extra = {}
+    extra = {"residue_max": _side_max(result.residue)}
     if scope == "hand_arm":  # base plausibility: the robot arm where the human arm was
-        arm = job.context.get("has_arm", False)
-        limbs_3d = None
-        if arm:
-            tracked = read_chunk(root, Unit("registration", clip), ["arm_keypoints"], a, b)["arm_keypoints"]
-            limbs_3d = limbs(reg["keypoints"], tracked, read_chunk(root, Unit("ingest", clip), ["arm_valid"], a, b)["arm_valid"])
+        limbs_3d = limbs(reg["keypoints"], reg["arm_keypoints"], src["arm_valid"]) if tracked_arm else None
         checked = replace & (own == Reason.OK)
         off = off_arm_shares(result.robot_mask, seg[SCOPE_MASK[scope]], limbs_3d, intr, checked, cfg.arm_corridor_frac)
-        own = np.where(checked & (off > cfg.max_off_arm), Reason.OFF_ARM, own).astype(np.int16)
-        extra["off_arm_max"] = [None if not np.isfinite(off[:, k]).any() else float(np.nanmax(off[:, k]))
-                                for k in range(off.shape[1])]
+        own = off_arm_status(own, checked, off, cfg.max_off_arm)
+        extra["off_arm_max"] = _side_max(off)
     upstream = ren["hand_status"]
     hand_status = np.where(replace, own,
                            np.where(upstream == Reason.ABSENT, Reason.ABSENT, Reason.UPSTREAM)).astype(np.int16)
     method = result.method + ("+object-mesh-depth" if occluder_depth is not None else "")
-    res = result.residue
-    extra["residue_max"] = [None if not np.isfinite(res[:, k]).any() else float(np.nanmax(res[:, k])) for k in range(res.shape[1])]
     return StageOutput({"image": result.image, "robot_mask": result.robot_mask}, combine(per_frame(hand_status), ready),
                        method=method, hand_status=hand_status, extra=extra)
+
+
+def _side_max(values: np.ndarray) -> list[float | None]:
+    """Per side, the largest measured value of the chunk (None: not measured), for provenance."""
+    return [float(np.nanmax(v)) if np.isfinite(v).any() else None for v in np.asarray(values).T]
 
 
 @task(**stage_options("composite"))

@@ -19,20 +19,11 @@ import cv2
 import numpy as np
 
 from handedit.camera import Intrinsics, project
+from handedit.reasons import STATUS_DTYPE, Reason
 
 NEAR_M = 0.05  # capsule segments are clipped to z >= this (the arm runs past the camera)
 FOREARM_RADIUS_M = 0.04  # a forearm's radius; the measure of the hand-arm issue
 CORRIDOR_FRAC = 0.05  # the corridor grows by this share of the image width
-
-
-def limb_polyline(wrist: np.ndarray, arm: np.ndarray, arm_valid: np.ndarray | None = None) -> np.ndarray:
-    """(k,3) camera-frame points wrist -> elbow -> shoulder, up to the first untracked joint."""
-    pts = [np.asarray(wrist, float)]
-    for j, p in enumerate(np.asarray(arm, float)):
-        if (arm_valid is not None and not arm_valid[j]) or not np.isfinite(p).all():
-            break
-        pts.append(p)
-    return np.stack(pts)
 
 
 def clip_near(a: np.ndarray, b: np.ndarray, near: float = NEAR_M) -> tuple[np.ndarray, np.ndarray] | None:
@@ -44,6 +35,12 @@ def clip_near(a: np.ndarray, b: np.ndarray, near: float = NEAR_M) -> tuple[np.nd
     elif b[2] < near:
         b = a + (b - a) * (a[2] - near) / (a[2] - b[2])
     return a, b
+
+
+def tracked(line: np.ndarray) -> np.ndarray:
+    """The tracked part of a ``limbs`` polyline: its points up to the first NaN one."""
+    ok = np.isfinite(line).all(-1)
+    return line if ok.all() else line[: int(np.argmin(ok))]
 
 
 def capsule(points: np.ndarray, intr: Intrinsics, radius_m: float, shape: tuple[int, int], *, start_m: float = 0.0,
@@ -100,9 +97,8 @@ def corridor(handarm_mask: np.ndarray, forearm: np.ndarray | None = None, frac: 
     """Where a robot arm may appear: the human arm (hand-arm mask and forearm capsule), grown
     by ``frac`` of the image width."""
     region = handarm_mask if forearm is None else (handarm_mask | forearm)
-    px = max(1, int(round(frac * region.shape[1])))
-    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * px + 1, 2 * px + 1))
-    return cv2.dilate(region.astype(np.uint8), k).astype(bool)
+    dist = cv2.distanceTransform((~region).astype(np.uint8), cv2.DIST_L2, 3)
+    return dist <= frac * region.shape[1]
 
 
 def outside_share(robot_mask: np.ndarray, corridor_mask: np.ndarray) -> float:
@@ -132,19 +128,18 @@ def off_arm_shares(robot_mask: np.ndarray, human_mask: np.ndarray, limbs_3d: np.
     out = np.full((n, S), np.nan, np.float32)
     small = (max(1, W // step), max(1, H // step))
     intr_s = None if intr is None else intr.scaled(*small)
-    grow_px = frac * small[0]
     for i, k in zip(*np.nonzero(checked)):
         robot = robot_mask[i, k, ::step, ::step][: small[1], : small[0]]
         if not robot.any():
             out[i, k] = 0.0
             continue
-        region = human_mask[i, k, ::step, ::step][: small[1], : small[0]].copy()
-        if limbs_3d is not None and intr_s is not None:
-            line = limbs_3d[i, k]
-            ok = np.isfinite(line).all(-1)
-            n_ok = int(np.argmin(ok)) if not ok.all() else len(line)
-            if n_ok >= 2:
-                region |= capsule(line[:n_ok], intr_s, FOREARM_RADIUS_M, region.shape)
-        dist = cv2.distanceTransform((~region).astype(np.uint8), cv2.DIST_L2, 3)
-        out[i, k] = outside_share(robot, dist <= grow_px)
+        human = human_mask[i, k, ::step, ::step][: small[1], : small[0]]
+        line = None if limbs_3d is None or intr_s is None else tracked(limbs_3d[i, k])
+        forearm = None if line is None or len(line) < 2 else capsule(line, intr_s, FOREARM_RADIUS_M, human.shape)
+        out[i, k] = outside_share(robot, corridor(human, forearm, frac))
     return out
+
+
+def off_arm_status(own: np.ndarray, checked: np.ndarray, shares: np.ndarray, max_share: float) -> np.ndarray:
+    """(n,S) statuses with ``OFF_ARM`` where a checked side's share exceeds ``max_share``."""
+    return np.where(checked & (shares > max_share), Reason.OFF_ARM, own).astype(STATUS_DTYPE)

@@ -52,7 +52,7 @@ import pydantic
 from handedit.camera import Intrinsics, project
 from handedit.keypoints import MCPS, N_JOINTS, PARENT, WRIST
 from handedit.metrics.similarity import bbox
-from handedit.vision.arm import capsule, clip_near
+from handedit.vision.arm import capsule, clip_near, tracked
 from handedit.vision.masks import disk, grow
 from handedit.reasons import STATUS_DTYPE, Reason, per_frame
 from handedit.vision.skin import SkinModel, colour_gaussian, gaussian_loglik, prior_rule, to_ycrcb
@@ -591,10 +591,9 @@ def _frame_kp(pts: np.ndarray, valid: np.ndarray, limb: np.ndarray | None, intr:
     fore = _forearm_dir(pts, valid)
     line = None
     if limb is not None and intr is not None:
-        ok = np.isfinite(limb).all(-1)
-        n_ok = int(np.argmin(ok)) if not ok.all() else len(limb)
-        if n_ok >= 2:
-            line = limb[:n_ok]
+        part = tracked(limb)
+        if len(part) >= 2:
+            line = part
             seg = clip_near(line[0], line[1])  # the forearm's image direction, in front of the camera
             uv = None if seg is None else project(np.stack(seg), intr)
             d = None if uv is None else uv[1] - uv[0]
