@@ -87,6 +87,7 @@ def plan_pairs(loc: Location, root, clips: list[str], embodiments: list[str], ta
     order += sorted(clips - set(order))
     pairs: list[Pair] = []
     fingerprints, stages, n_frames, hw = {}, {}, {}, None
+    held_back = 0
     for clip in order:
         info = dict(root[Unit("ingest", clip).path].attrs.get("info") or {})
         meta = info.get("meta") or {}
@@ -107,8 +108,12 @@ def plan_pairs(loc: Location, root, clips: list[str], embodiments: list[str], ta
             sides = unit_sides(root, qc_unit)
             emb_records = {s: read_records(root, Unit(s, clip, embodiment=emb)) for s in ("composite", "harmonize", "qc")}
             part = f"{group_of.get(clip, 'clips')}/{emb}"
+            unreviewed = pending_review(read_records(root, Unit("retarget", clip, embodiment=emb))) if e.track == "hand_arm" else set()
             for t in map(int, (status == Reason.OK).nonzero()[0]):
                 replaced = tuple(s for k, s in enumerate(sides) if hs is None or hs[t, k] == Reason.OK)
+                if unreviewed & set(replaced):
+                    held_back += 1
+                    continue
                 digests = [d for recs in (*clip_records.values(), *emb_records.values()) for d in _digests(recs, t // f)]
                 pairs.append(Pair(clip, emb, t, replaced, e.track, str(meta.get("dataset", "")),
                                   str(meta.get("task") or meta.get("task_folder") or ""), text, reference,
@@ -121,8 +126,19 @@ def plan_pairs(loc: Location, root, clips: list[str], embodiments: list[str], ta
         out += [replace(p, part=f"{group}/{cut[p.clip]:04d}") for p in members]
     source = {"store": loc.store_url, "clips": len(order), "stages": stages,
               "fingerprint": hashlib.sha256(json.dumps(fingerprints, sort_keys=True).encode()).hexdigest(),
-              "frames_per_chunk": f, "pairs_per_shard": per_part}
+              "frames_per_chunk": f, "pairs_per_shard": per_part, "held_back_unreviewed": held_back}
     return out, source
+
+
+def pending_review(records: dict) -> set[str]:
+    """Sides of a hand-arm sequence whose base waits for an operator (``review: manual``, not yet
+    decided with ``handedit review``): their pairs are held back from a release."""
+    out = set()
+    for rec in records.values():
+        for side, vb in ((rec.extra or {}).get("virtual_base") or {}).items():
+            if str((vb or {}).get("selected_by", "")).startswith("pending"):
+                out.add(side)
+    return out
 
 
 @flow(name="release")

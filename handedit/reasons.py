@@ -51,6 +51,7 @@ class Reason(IntEnum):
     DISCONTINUITY = 504
     NO_VALID_BASE = 505
     REVIEW_DROPPED = 506
+    BODY_COLLISION = 507  # hand-arm: an arm link enters the operator's head or torso
     # 6xx: render / composite / harmonize
     EMPTY_RENDER = 601  # the robot is not visible in the image
     HUMAN_VISIBLE = 602  # human-hand pixels remain visible beside the robot in the composite

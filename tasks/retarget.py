@@ -76,10 +76,10 @@ def _hand_arm_body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     choices = {s: reviews[s]["choice"] for s in sides if s in reviews}
     world = job.context.get("world")
     wfc = inp["world_from_camera"] if world else None
+    intr = Intrinsics(**job.context["intrinsics"])
     res = retarget_hand_arm_sides(inp["reg_keypoints"], inp["reg_keypoints_valid"], inp["ready"], sides, job.unit.embodiment,
                                   RetargetConfig(**job.params), wfc, world, inp.get("reg_arm_keypoints"), inp.get("arm_valid"),
-                                  choices, object_mesh=mesh, object_pose=pose)
-    intr = Intrinsics(**job.context["intrinsics"])
+                                  choices, object_mesh=mesh, object_pose=pose, intr=intr)
     previews = {}
     for k, side in enumerate(sides):
         arm_res = res.arm_results.get(k)

@@ -77,7 +77,7 @@ def test_hand_arm_track(run):
     recs = read_records(root, Unit("retarget", clip, embodiment=EMB))
     assert sorted(recs) == [0] and (recs[0].start, recs[0].stop) == (0, T)  # one search for the sequence
     vb = [recs[0].extra["virtual_base"]["right"]]  # one base per hand; the synthetic clip has the right one
-    assert len(vb[0]["candidates"]) == 27 and vb[0]["selected_by"] == "auto:top1"
+    assert len(vb[0]["candidates"]) == 27 * (1 + vb[0]["diagnosis"]["refined"]) and vb[0]["selected_by"] == "auto:top1"
     assert vb[0]["chosen"] == vb[0]["ranking"][0]
     assert all("reason_name" in c and "critical_success" in c for c in vb[0]["candidates"])
     # the top-3 candidates' egocentric and third-person previews are in the store
@@ -121,3 +121,26 @@ def test_review_choose_rerun_and_previews(run, dask_cluster, tmp_path, capsys):
     ret = root[Unit("retarget", clip, embodiment=EMB).path]
     world_from_base = root[Unit("ingest", clip).path]["world_from_camera"][0] @ ret["root_pose"][0, 0]
     np.testing.assert_allclose(world_from_base, rec["candidates"][k]["camera_from_base"], atol=1e-5)
+
+
+def test_unreviewed_bases_are_held_back_from_releases(run, monkeypatch):
+    """``review: manual``: a side whose base waits for ``handedit review`` (``pending:manual``)
+    publishes none of its pairs; the release plan counts them as held back."""
+    import dataclasses
+
+    import handedit.flows.release as rel
+    from handedit.storage import Location
+
+    config, _, clip = run
+    root = open_store(config.out)
+    recs = read_records(root, Unit("retarget", clip, embodiment=EMB))
+    assert rel.pending_review(recs) == set()  # auto:top1 is a decision
+    vb = recs[0].extra["virtual_base"]
+    pending = {0: dataclasses.replace(recs[0], extra={**recs[0].extra,
+                                                      "virtual_base": {"right": {**vb["right"], "selected_by": "pending:manual"}}})}
+    assert rel.pending_review(pending) == {"right"}
+    pairs, source = rel.plan_pairs(Location(str(config.out)), root, [clip], [EMB], 1 << 30)
+    assert pairs and source["held_back_unreviewed"] == 0
+    monkeypatch.setattr(rel, "read_records", lambda r, u: pending if u.stage == "retarget" else read_records(r, u))
+    held, source = rel.plan_pairs(Location(str(config.out)), root, [clip], [EMB], 1 << 30)
+    assert held == [] and source["held_back_unreviewed"] == len(pairs)

@@ -9,14 +9,22 @@ from pydantic import BaseModel, ConfigDict, Field
 
 class VirtualBaseConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
-    VERSION: ClassVar[int] = 2
+    VERSION: ClassVar[int] = 3  # 3: head-torso keep-out, critical tolerance, refinement grid, plausibility ranking
 
     init_back: float = Field(0.55, description="base distance behind the wrist centre, in L_r")
     init_up: float = Field(0.10, description="base height above the wrist centre, in L_r")
     init_shoulder_drop: float = Field(0.25, description="with shoulder keypoints: the arm's first joint this far below the "
                                       "human shoulder, in L_r (a robot shoulder at head height would fill the view)")
-    camera_clearance_m: float = Field(0.06, ge=0, description="an arm link closer than this to the camera (through the head camera) "
-                                      "is a collision")
+    virtual_shoulder_drop_m: float = Field(0.20, ge=0, description="sources without shoulder keypoints: the operator's "
+                                           "shoulders this far below the head camera")
+    virtual_shoulder_back_m: float = Field(0.05, ge=0, description="and this far behind it (horizontally)")
+    virtual_shoulder_half_width_m: float = Field(0.18, ge=0, description="and this far to each side")
+    body_radius_m: float = Field(0.08, ge=0, description="the operator's head and torso: a capsule of this radius (m) that no "
+                                 "arm link may enter (0: no check)")
+    head_back_m: float = Field(0.08, ge=0, description="the head's centre: this far behind the head camera (horizontally)")
+    torso_length_m: float = Field(0.60, ge=0, description="the body axis runs this far down from the head along world up")
+    torso_back_m: float = Field(0.15, ge=0, description="and its lower end this much further back (the chest stays behind "
+                                "the eyes of someone looking down at a table)")
     pos_tol_mm: float = Field(10.0, gt=0, description="IK position error above which a frame is infeasible")
     rot_tol_deg: float = Field(5.0, gt=0)
     link_radius: float = Field(0.035, gt=0, description="capsule radius of arm links (m)")
@@ -25,6 +33,16 @@ class VirtualBaseConfig(BaseModel):
     joint_limit_tol: float = Field(1e-6, ge=0)
     smooth: float = Field(1e-2, ge=0)
     n_seeds: int = Field(6, ge=1, description="IK restarts on the first frame of a candidate")
+    critical_tolerance: float = Field(0.02, ge=0, le=1, description="share of a sequence's critical frames a candidate may "
+                                      "fail (those frames are rejected on their own) before it is discarded")
+    min_reachability: float = Field(0.5, ge=0, le=1, description="a candidate that keeps fewer of the sequence's valid frames "
+                                    "than this (body collisions, failures off the critical frames) is discarded")
+    refine_reach_frac: float = Field(0.65, gt=0, le=1, description="when none of the 27 survive: a second grid whose centre puts "
+                                     "the wrist targets this share of L_r from the arm's first joint")
+    plausibility_frames: int = Field(8, ge=0, description="frames per candidate on which the footprint and forearm measures "
+                                     "are taken (0: plausibility not ranked)")
+    body_seeds: int = Field(10, ge=0, description="first frame: random IK restarts added when no seed's arm keeps clear of "
+                            "the operator's body")
     review: Literal["auto_top1", "manual"] = "auto_top1"
     top_k: int = Field(3, ge=1)
 

@@ -24,11 +24,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from handedit.camera import Intrinsics, project
 from handedit.reasons import STATUS_DTYPE, Reason
 from handedit.retarget.api import RetargetResult, retarget
 from handedit.retarget.arm import arm_model
 from handedit.retarget.config import RetargetConfig
-from handedit.retarget.virtual_base import VirtualBaseConfig, VirtualBaseResult, search_virtual_base
+from handedit.retarget.plausibility import BaseView
+from handedit.retarget.virtual_base import VirtualBaseConfig, VirtualBaseResult, search_virtual_base, virtual_shoulders
 
 
 @dataclass
@@ -45,10 +47,12 @@ class HandArmResult:
     hand: "RetargetResult | None" = None  # the hand-only result the arm follows (for QC)
 
     def summary(self) -> dict:
-        """JSON-safe sequence-level record: all 27 scores, ranking, choice, policy."""
+        """JSON-safe sequence-level record: every candidate's scores (27, 54 after a refinement), ranking,
+        choice, policy, diagnosis."""
         vb = self.virtual_base
         return {"embodiment": vb.embodiment_id, "reach_m": vb.reach_m, "chosen": vb.chosen, "selected_by": vb.selected_by,
                 "ranking": vb.ranking, "reason": int(vb.reason), "detail": vb.detail, "notes": self.notes,
+                "diagnosis": vb.diagnosis,
                 "camera_or_world_from_base": None if vb.camera_from_base is None else np.round(vb.camera_from_base, 6).tolist(),
                 "candidates": vb.scores_json()}
 
@@ -60,19 +64,33 @@ def known_world(world: dict | None, world_from_camera: np.ndarray | None) -> boo
 def retarget_hand_arm(keypoints: np.ndarray, keypoints_valid: np.ndarray, embodiment_id: str, cfg: RetargetConfig,
                       vb_cfg: VirtualBaseConfig | None = None, world_from_camera: np.ndarray | None = None,
                       choice: int | None = None, world: dict | None = None,
-                      shoulders: np.ndarray | None = None) -> HandArmResult:
+                      shoulders: np.ndarray | None = None, view: BaseView | None = None) -> HandArmResult:
     """Whole-sequence hand-arm retargeting (see module doc). ``choice``: an operator's
     candidate index (``handedit review``), -1 to drop the sequence, None for the policy.
     ``world``: ``ClipInfo.world`` (None: no world frame); ``shoulders`` (2,3): the
-    (left, right) shoulder joints in the camera frame of the first frame, or None."""
+    (left, right) shoulder joints in the camera frame of the first frame, or None;
+    ``view``: the camera and the human arm, for plausibility ranking and critical frames."""
     kp = np.ascontiguousarray(keypoints, dtype=np.float32)
     va = np.ascontiguousarray(keypoints_valid, dtype=bool)
     wfc = None if world_from_camera is None else np.ascontiguousarray(world_from_camera, dtype=np.float64)
-    return _solve(embodiment_id, cfg, vb_cfg or cfg.virtual_base, choice, kp, va, wfc, world, shoulders)
+    return _solve(embodiment_id, cfg, vb_cfg or cfg.virtual_base, choice, kp, va, wfc, world, shoulders, view)
+
+
+def critical_frames(kp: np.ndarray, va: np.ndarray, ok: np.ndarray, intr: Intrinsics | None) -> np.ndarray:
+    """The frames a base must reach: the hand retargeted and, with a camera, in view (a tracked
+    keypoint inside the image: the wrist itself is often below the frame's edge)."""
+    crit = np.asarray(ok, bool)
+    if intr is not None:
+        uv = project(np.asarray(kp, float), intr)
+        inside = np.isfinite(uv).all(-1) & (uv[..., 0] >= 0) & (uv[..., 0] < intr.width) & (uv[..., 1] >= 0) \
+            & (uv[..., 1] < intr.height)
+        crit &= (inside & np.asarray(va, bool)).any(axis=1)
+    return crit
 
 
 def _solve(embodiment_id: str, cfg: RetargetConfig, vb_cfg: VirtualBaseConfig, choice,
-           kp, va, wfc, world_desc: dict | None = None, shoulders: np.ndarray | None = None) -> HandArmResult:
+           kp, va, wfc, world_desc: dict | None = None, shoulders: np.ndarray | None = None,
+           view: BaseView | None = None) -> HandArmResult:
     arm = arm_model(embodiment_id)
     n = len(kp)
     hand = retarget(kp, va, arm.hand_id, cfg)
@@ -91,11 +109,18 @@ def _solve(embodiment_id: str, cfg: RetargetConfig, vb_cfg: VirtualBaseConfig, c
     else:
         up, plane = np.array([0.0, -1.0, 0.0]), None
         notes.append("support-plane check not possible: the source gives no world frame; base fixed in the camera frame")
-    notes.append("base initialised from the shoulders" if shoulders is not None else
-                 "base initialised from the wrist trajectory and the arm's reach (no shoulder keypoints)")
-    cameras = wfc[:, :3, 3] if world else np.zeros((n, 3))
+    cameras = wfc if world else np.tile(np.eye(4), (n, 1, 1))
+    if shoulders is not None:
+        notes.append("base initialised from the shoulders")
+    elif ok.any():
+        shoulders = virtual_shoulders(cameras[int(np.flatnonzero(ok)[0])], up, vb_cfg)
+        notes.append("base initialised from shoulders placed under the head camera (the source does not track them)")
+    critical = critical_frames(kp, va, ok, None if view is None else view.intr)
     vb = search_virtual_base(targets, ok, embodiment_id, vb_cfg, up=up, support_plane=plane, shoulders=shoulders,
-                             cameras=cameras)
+                             cameras=cameras, critical=critical, view=view)
+    if vb.diagnosis.get("refined"):
+        notes.append(f"no base among the paper's 27 candidates; refined around a base {vb_cfg.refine_reach_frac} L_r "
+                     f"from the wrist targets (they were {vb.diagnosis['target_distance_Lr']} L_r away)")
     if choice is not None and vb.reason == Reason.OK:
         try:
             vb = apply_review(vb, choice, arm)

@@ -22,6 +22,7 @@ from handedit.embodiments.mirror import CAMERA_MIRROR, left_pose, mirror_keypoin
 from handedit.keypoints import SHOULDER
 from handedit.reasons import STATUS_DTYPE, Reason
 from handedit.retarget.config import RetargetConfig
+from handedit.retarget.plausibility import BaseView, human_limbs
 
 _MX = CAMERA_MIRROR[:3, :3]
 
@@ -98,8 +99,10 @@ def _empty(n: int, S: int, joint_names: list[str]) -> SidesResult:
 def retarget_hand_arm_sides(keypoints: np.ndarray, keypoints_valid: np.ndarray, present: np.ndarray, sides: tuple[str, ...],
                             embodiment_id: str, cfg: RetargetConfig, world_from_camera: np.ndarray | None,
                             world: dict | None, arm_keypoints: np.ndarray | None = None, arm_valid: np.ndarray | None = None,
-                            choices: dict[str, int] | None = None, object_mesh=None, object_pose=None) -> SidesResult:
-    """Hand-arm track, whole sequence: one virtual base per side, then the dual-arm check."""
+                            choices: dict[str, int] | None = None, object_mesh=None, object_pose=None,
+                            intr: Intrinsics | None = None) -> SidesResult:
+    """Hand-arm track, whole sequence: one virtual base per side, then the dual-arm check.
+    ``intr`` (the working resolution's camera): base plausibility is ranked in the image."""
     from handedit.retarget.hand_arm import merge_hand_qc, retarget_hand_arm
     from handedit.retarget.qc import RetargetQCConfig, retarget_qc
 
@@ -116,7 +119,13 @@ def retarget_hand_arm_sides(keypoints: np.ndarray, keypoints_valid: np.ndarray, 
             wfc = None if wfc is None else mirror_world(wfc)
             sh = None if sh is None else mirror_keypoints(sh[::-1])  # the mirrored view's right shoulder is the left one
         choice = (choices or {}).get(side)
-        res = retarget_hand_arm(kpk, valid, embodiment_id, cfg, world_from_camera=wfc, choice=choice, world=world, shoulders=sh)
+        view = None
+        if intr is not None:
+            limbs, tracked_arm = human_limbs(kp[:, k], None if arm_keypoints is None else arm_keypoints[:, k],
+                                             None if arm_valid is None else arm_valid[:, k])
+            view = BaseView(preview_intrinsics(intr, side), mirror_keypoints(limbs) if side == "left" else limbs, tracked_arm)
+        res = retarget_hand_arm(kpk, valid, embodiment_id, cfg, world_from_camera=wfc, choice=choice, world=world,
+                                shoulders=sh, view=view)
         qc = retarget_qc(res.hand, kpk, valid, embodiment_id,
                          RetargetQCConfig.from_retarget(cfg), cfg, object_mesh=mesh, object_pose=pose)
         status, details = merge_hand_qc(res, qc)

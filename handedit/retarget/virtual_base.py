@@ -4,18 +4,28 @@ The physical base is not visible in egocentric video, so (paper, appendix "Virtu
 Search and IK") a base is searched around an initial guess and then kept fixed for the
 whole sequence:
 
-* initial guess: from the shoulders when the source has them (the right shoulder, facing
-  along the horizontal direction from the shoulder midpoint to the wrist-trajectory
-  centre), else ``init_back * L_r`` behind the wrist-trajectory centre along the camera's
-  horizontal viewing direction, ``init_up * L_r`` above it;
+* initial guess: from the shoulders (the right shoulder, facing along the horizontal
+  direction from the shoulder midpoint to the wrist-trajectory centre): the source's
+  where it tracks them, else shoulders placed under the head camera (``virtual_shoulders``);
+  with neither (no valid frame) ``init_back * L_r`` behind the wrist-trajectory centre
+  along the camera's horizontal viewing direction, ``init_up * L_r`` above it;
 * a 3x3x3 grid: lateral {-0.10, 0, 0.10} L_r, forward/backward {-0.15, 0, 0.15} L_r, yaw
   {-15, 0, 15} degrees; height, roll and pitch stay upright (base z = world up);
 * per candidate, per frame casadi IK of the robot wrist link onto the target (the human
   wrist mapped by the hand's fixed SE(3)), warm-started along the sequence;
-* candidates with an infeasible critical frame, a joint-limit violation, self- or
-  support-plane collision, an arm link through the head (closer than
-  ``camera_clearance_m`` to the camera) or a trajectory jump are discarded; survivors are ranked
-  lexicographically by critical-frame success, reachability, mean end-effector error,
+* a frame fails on IK infeasibility, a joint-limit violation, self- or support-plane
+  collision, or an arm link inside the operator's head and torso (a capsule from behind
+  the head camera down along world up: ``body_distance``); a candidate is discarded when
+  more than ``critical_tolerance`` of its critical frames fail (the paper does not say which
+  frames are critical; the caller passes the frames where the hand is in view and fully
+  tracked) or its kept frames jump; failed frames of a kept candidate are rejected alone;
+* when none of the 27 survives, a second grid is centred where the arm's first joint sits
+  ``refine_reach_frac`` L_r from the wrist targets (``reach_centre``: a long arm beside the
+  human shoulder folds onto targets 0.3 L_r away and reaches no wrist orientation); the
+  verdict counts of both grids and the targets' distance go to ``diagnosis``;
+* survivors are ranked lexicographically by critical-frame success, plausibility (the
+  share of the arm's footprint outside the human arm's corridor, ``plausibility``),
+  reachability, forearm direction against the human forearm, mean end-effector error,
   joint margin, continuity (each quantised, so a later key can break ties);
 * every candidate's score is returned; the top three get previews; a review policy picks
   one (``auto_top1`` records that choice as automatic).
@@ -33,10 +43,13 @@ import numpy as np
 from handedit.reasons import STATUS_DTYPE, Reason
 from handedit.retarget.arm import ArmModel, arm_model
 from handedit.retarget.config import VirtualBaseConfig
+from handedit.retarget.plausibility import BaseView, footprint_outside, forearm_angle
 
 GRID_LATERAL = (-0.10, 0.0, 0.10)
 GRID_FORWARD = (-0.15, 0.0, 0.15)
 GRID_YAW_DEG = (-15.0, 0.0, 15.0)
+REFINE_OUTWARD = (0.0, 0.15, 0.30)  # the second grid (refine_grid), in L_r
+REFINE_DOWN = (0.0, 0.15, 0.30)
 
 
 @dataclass
@@ -54,9 +67,18 @@ class CandidateScore:
     joint_margin: float
     continuity: float  # max joint step (rad) between consecutive solved frames
     rank: int = -1  # 0 = best survivor, -1 = discarded
+    off_corridor: float = 0.0  # mean share of the arm's footprint outside the human arm's corridor (0: not measured)
+    forearm_deg: float = 0.0  # mean angle between the robot's and the human forearm (0: not measured)
+    stage: str = "grid"  # "grid": the paper's 27; "refine": the reach-aware second grid
+    down: float = 0.0  # refine: the base this far below the grid centre, in L_r
 
     def key(self) -> tuple:
-        return (-round(self.critical_success, 3), -round(self.reachability, 3), round(self.ee_error_mm),
+        """Lexicographic rank: critical-frame success, plausibility (footprint in tenths),
+        reachability, forearm direction (15 degree steps), then the paper's end-effector
+        error, joint margin and continuity."""
+        off = round(self.off_corridor * 10) if np.isfinite(self.off_corridor) else 10
+        fa = round(self.forearm_deg / 15) if np.isfinite(self.forearm_deg) else 12
+        return (-round(self.critical_success, 3), off, -round(self.reachability, 3), fa, round(self.ee_error_mm),
                 -round(self.joint_margin, 2), round(self.continuity, 2))
 
     def to_json(self) -> dict:
@@ -86,6 +108,7 @@ class VirtualBaseResult:
     trajectories: dict[int, np.ndarray] = field(default_factory=dict)  # top-k candidate -> (T,dof)
     arm_tracks: np.ndarray | None = None  # (27,T,n_arm) every candidate's IK solution
     frame_status: np.ndarray | None = None  # (27,T) every candidate's per-frame status
+    diagnosis: dict = field(default_factory=dict)  # why candidates failed, the targets' distance in L_r, refinement
 
     @property
     def top(self) -> list[int]:
@@ -137,6 +160,24 @@ def initial_base(targets: np.ndarray, valid: np.ndarray, up: np.ndarray, reach: 
     return T
 
 
+def virtual_shoulders(camera: np.ndarray, up: np.ndarray, cfg: VirtualBaseConfig) -> np.ndarray:
+    """(2,3) (left, right) shoulders of the operator wearing the head camera ``camera`` (4,4, in
+    the targets' frame) for sources that do not track them: ``virtual_shoulder_drop_m`` below
+    it, ``virtual_shoulder_back_m`` behind it and ``virtual_shoulder_half_width_m`` to each
+    side, horizontally. Without them the grid centre sat between the camera and the hands,
+    and the robot's shoulder filled the top of the view."""
+    up = np.asarray(up, float) / np.linalg.norm(up)
+
+    def horizontal(v: np.ndarray) -> np.ndarray:
+        h = v - (v @ up) * up
+        return h / np.linalg.norm(h) if np.linalg.norm(h) > 1e-9 else h
+
+    fwd, right = horizontal(camera[:3, 2]), horizontal(camera[:3, 0])
+    centre = camera[:3, 3] - cfg.virtual_shoulder_drop_m * up - cfg.virtual_shoulder_back_m * fwd
+    half = cfg.virtual_shoulder_half_width_m * right
+    return np.stack([centre - half, centre + half])
+
+
 def candidate_grid(T0: np.ndarray, reach: float) -> list[tuple[float, float, float, np.ndarray]]:
     """The 27 (lateral, forward, yaw_deg, camera_from_base) candidates around ``T0``."""
     out = []
@@ -150,6 +191,25 @@ def candidate_grid(T0: np.ndarray, reach: float) -> list[tuple[float, float, flo
                 T[:3, :3] = T0[:3, :3] @ Rz
                 out.append((lat, fwd, yaw, T))
     return out
+
+
+def refine_grid(T1: np.ndarray, reach: float, outward: np.ndarray) -> list[tuple[float, float, float, np.ndarray]]:
+    """The 27 second-chance candidates around ``T1`` (``reach_centre``): outward from the
+    operator's body (horizontal ``outward``) {0, 0.15, 0.3} L_r, down {0, 0.15, 0.3} L_r,
+    forward/backward {-0.15, 0, 0.15} L_r; upright, no yaw. A folded elbow that the paper's
+    grid puts into the operator's head clears it lower or further out. Entries are
+    (lateral, forward, yaw_deg, camera_from_base, down)."""
+    up = T1[:3, 2]
+    out = np.asarray(outward, float) - (np.asarray(outward, float) @ up) * up
+    out = out / np.linalg.norm(out) if np.linalg.norm(out) > 1e-9 else T1[:3, 1]
+    grid = []
+    for lat in REFINE_OUTWARD:
+        for down in REFINE_DOWN:
+            for fwd in GRID_FORWARD:
+                T = T1.copy()
+                T[:3, 3] = T1[:3, 3] + (lat * out + fwd * T1[:3, 0] - down * up) * reach
+                grid.append((lat, fwd, 0.0, T, down))
+    return grid
 
 
 def _seg_dist(p1, q1, p2, q2) -> float:
@@ -230,17 +290,27 @@ class _Track:
     chains: np.ndarray  # (T,3,P) in the camera frame
 
 
-def camera_distance(chain_cam: np.ndarray, points: np.ndarray, camera: np.ndarray) -> float:
-    """Distance (m) from the camera centre to the capsule axes through the selected chain points."""
-    pts = chain_cam[:, points].T
+def body_distance(points: np.ndarray, frame_from_camera: np.ndarray, up: np.ndarray, head_back: float,
+                  torso_length: float, torso_back: float = 0.0, neck: float = 0.25) -> float:
+    """Distance (m) from the polyline ``points`` (P,3, the targets' frame) to the operator's
+    body axis: the head's centre ``head_back`` behind the camera (horizontally), the neck
+    ``neck`` below it, the hips ``torso_length`` below the head and ``torso_back`` further
+    back (a person looking down at a table leans over it: the chest stays behind the eyes)."""
+    up = np.asarray(up, float) / np.linalg.norm(up)
+    fwd = frame_from_camera[:3, 2] - (frame_from_camera[:3, 2] @ up) * up
+    n = np.linalg.norm(fwd)
+    fwd = fwd / n if n > 1e-6 else np.zeros(3)
+    head = frame_from_camera[:3, 3] - head_back * fwd
+    axis = [head, head - neck * up, head - torso_back * fwd - torso_length * up]
+    pts = np.asarray(points, float)
     if len(pts) < 2:
         return float("inf")
-    return min(_seg_dist(a, b, camera, camera) for a, b in zip(pts[:-1], pts[1:]))
+    return min(_seg_dist(a, b, c, d) for a, b in zip(pts[:-1], pts[1:]) for c, d in zip(axis[:-1], axis[1:]))
 
 
 def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, valid: np.ndarray,
               plane: np.ndarray | None, cfg: VirtualBaseConfig, hint: np.ndarray | None = None,
-              cameras: np.ndarray | None = None) -> _Track:
+              cameras: np.ndarray | None = None, up: np.ndarray | None = None) -> _Track:
     """IK along the sequence for one base. ``hint``: first-frame arm joints of a neighbouring
     candidate (tried first: neighbours differ by a few cm, so it usually converges at once)."""
     T = len(targets)
@@ -250,6 +320,12 @@ def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, 
     status = np.full(T, Reason.NO_KEYPOINTS, dtype=STATUS_DTYPE)
     pos_err = np.full(T, np.nan)
     chains = np.zeros((T, 3, len(arm.moving)))
+    body_pts = np.r_[max(int(np.argmax(arm.moving)) - 1, 0), np.flatnonzero(arm.proximal)]  # from the shoulder on
+
+    def clearance(q: np.ndarray, i: int) -> float:
+        pts = camera_from_base[:3, :3] @ arm.chain(q)[:, body_pts] + camera_from_base[:3, 3:4]
+        return body_distance(pts.T, cameras[i], up, cfg.head_back_m, cfg.torso_length_m, cfg.torso_back_m)
+
     prev = None
     rng = np.random.default_rng(0)
     for i in np.flatnonzero(valid):
@@ -257,13 +333,9 @@ def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, 
         if prev is None:
             seeds = ([] if hint is None else [hint]) + [(arm.lo_s + arm.hi_s) / 2, np.zeros(arm.n)]
             seeds += [rng.uniform(arm.lo_s, arm.hi_s) for _ in range(max(cfg.n_seeds - len(seeds), 0))]
-            sols = []
             hopeless = np.linalg.norm(targets[i][:3, 3] - shoulder_cam) > arm.max_reach
-            for s0 in seeds[: 1 if hopeless else len(seeds)]:  # first feasible seed wins, else the closest
-                sols.append(arm.solve(target, s0))
-                if sols[-1].pos_err_mm <= cfg.pos_tol_mm and sols[-1].rot_err_deg <= cfg.rot_tol_deg:
-                    break
-            sol = min(sols, key=lambda s: s.pos_err_mm + 10 * s.rot_err_deg)
+            sol = _first_frame(arm, target, seeds[: 1 if hopeless else len(seeds)], cfg,
+                               None if cameras is None else (lambda q: clearance(q, i)))
         else:
             sol = arm.solve(target, prev.x, q_prev=prev.x, smooth=cfg.smooth, warm=prev)
             if sol.pos_err_mm > cfg.pos_tol_mm or sol.rot_err_deg > cfg.rot_tol_deg:  # restart once from the seed
@@ -284,17 +356,43 @@ def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, 
             status[i] = Reason.COLLISION
         elif plane is not None and plane_clearance(chains[i], arm.arm_points, plane) < cfg.link_radius + cfg.plane_margin:
             status[i] = Reason.COLLISION
-        elif cameras is not None and cfg.camera_clearance_m > 0 and \
-                camera_distance(chains[i], arm.proximal, cameras[i]) < cfg.camera_clearance_m + cfg.link_radius:
-            status[i] = Reason.COLLISION
+        elif cameras is not None and cfg.body_radius_m > 0 and \
+                body_distance(chains[i][:, body_pts].T, cameras[i], up, cfg.head_back_m, cfg.torso_length_m, cfg.torso_back_m) \
+                < cfg.body_radius_m + cfg.link_radius:
+            status[i] = Reason.BODY_COLLISION
         else:
             status[i] = Reason.OK
     return _Track(arm_q, status, pos_err, chains)
 
 
+def _first_frame(arm: ArmModel, target: np.ndarray, seeds: list, cfg: VirtualBaseConfig, clearance=None):
+    """IK of a sequence's first frame: the warm start of every later frame, so it picks the
+    arm's branch (elbow up or down, shoulder left or right). The first feasible seed wins when
+    its links keep clear of the operator's body by ``body_radius_m`` + 5 cm (or there is no
+    body to keep clear of); otherwise every seed is tried and the feasible one with the most
+    clearance wins, ``body_seeds`` more random seeds included (an elbow-up branch of a UR-type
+    arm passes the operator's neck); with none feasible, the closest solution."""
+    sols = []
+    need = cfg.body_radius_m + cfg.link_radius + 0.05
+    if clearance is not None and cfg.body_radius_m > 0 and len(seeds) > 1:  # more branches to choose from
+        rng = np.random.default_rng(1)
+        seeds = list(seeds) + [rng.uniform(arm.lo_s, arm.hi_s) for _ in range(cfg.body_seeds)]
+    for s0 in seeds:
+        sol = arm.solve(target, s0)
+        sol_ok = sol.pos_err_mm <= cfg.pos_tol_mm and sol.rot_err_deg <= cfg.rot_tol_deg
+        room = clearance(sol.x) if clearance is not None and sol_ok and cfg.body_radius_m > 0 else float("inf")
+        sols.append((sol, sol_ok, room))
+        if sol_ok and room >= need:
+            return sol
+    feasible = [(room, sol) for sol, sol_ok, room in sols if sol_ok]
+    if feasible:
+        return max(feasible, key=lambda x: x[0])[1]
+    return min((s for s, _, _ in sols), key=lambda s: s.pos_err_mm + 10 * s.rot_err_deg)
+
+
 def _score(idx: int, grid_entry, track: _Track, arm: ArmModel, valid: np.ndarray, critical: np.ndarray,
            cfg: VirtualBaseConfig) -> CandidateScore:
-    lat, fwd, yaw, Tb = grid_entry
+    lat, fwd, yaw, Tb = grid_entry[:4]
     st = track.status
     ok = st == Reason.OK
     crit = critical & valid
@@ -304,23 +402,70 @@ def _score(idx: int, grid_entry, track: _Track, arm: ArmModel, valid: np.ndarray
     q = track.arm_q[ok]
     rng_ = arm.hi_s - arm.lo_s
     margin = float(np.min(np.minimum(q - arm.lo_s, arm.hi_s - q) / rng_)) if len(q) else 0.0
-    solved = np.flatnonzero(valid)
+    solved = np.flatnonzero(ok)  # steps between frames that are kept (a rejected frame's pose is never shown)
     steps = np.abs(np.diff(track.arm_q[solved], axis=0)).max(axis=1) if len(solved) > 1 else np.zeros(0)
     cont = float(steps.max()) if steps.size else 0.0
     reason, detail = Reason.OK, ""
-    bad_crit = crit & ~ok
-    if bad_crit.any():
-        codes = st[bad_crit]
-        r = Reason(int(np.bincount(codes).argmax()))  # the commonest frame-level cause names the rejection
+    # a body collision is the operator's keep-out, not the robot's limit: that frame alone is rejected
+    bad_crit = crit & ~ok & (st != Reason.BODY_COLLISION)
+    allowed = int(np.floor(cfg.critical_tolerance * crit.sum()))
+    if bad_crit.sum() > allowed:
+        r = Reason(int(np.bincount(st[bad_crit]).argmax()))  # the commonest frame-level cause names the rejection
         reason = r
-        detail = f"{int(bad_crit.sum())} critical frame(s) fail ({r.name.lower().replace('_', ' ')}), first {int(np.flatnonzero(bad_crit)[0])}"
-    elif np.any(st == Reason.JOINT_LIMIT):
-        reason, detail = Reason.JOINT_LIMIT, "joint-limit violation"
-    elif np.any(st == Reason.COLLISION):
-        reason, detail = Reason.COLLISION, f"collision in {int((st == Reason.COLLISION).sum())} frame(s)"
+        detail = (f"{int(bad_crit.sum())} of {int(crit.sum())} critical frame(s) fail ({_name(r)}; {allowed} allowed), "
+                  f"first {int(np.flatnonzero(bad_crit)[0])}")
+    elif reach < cfg.min_reachability:
+        r = Reason(int(np.bincount(st[valid & ~ok]).argmax()))
+        reason = r
+        detail = f"keeps {int(ok.sum())} of {int(valid.sum())} frames ({_name(r)} in most of the others)"
     elif cont > cfg.max_joint_step:
         reason, detail = Reason.DISCONTINUITY, f"joint step {cont:.2f} rad > {cfg.max_joint_step}"
-    return CandidateScore(idx, lat, fwd, yaw, Tb, int(reason), detail, crit_succ, reach, ee, margin, cont)
+    return CandidateScore(idx, lat, fwd, yaw, Tb, int(reason), detail, crit_succ, reach, ee, margin, cont,
+                          down=grid_entry[4] if len(grid_entry) > 4 else 0.0)
+
+
+def _name(r: Reason) -> str:
+    return r.name.lower().replace("_", " ")
+
+
+def _plausibility(score: CandidateScore, track: _Track, arm: ArmModel, cameras: np.ndarray, view: BaseView,
+                  cfg: VirtualBaseConfig) -> None:
+    """Fill ``off_corridor`` and ``forearm_deg`` from up to ``plausibility_frames`` kept frames."""
+    kept = np.flatnonzero((track.status == Reason.OK) & np.isfinite(view.limbs[:, 1]).all(-1))
+    if not len(kept) or cfg.plausibility_frames == 0:
+        score.off_corridor = score.forearm_deg = float("nan")
+        return
+    frames = kept[np.unique(np.linspace(0, len(kept) - 1, min(cfg.plausibility_frames, len(kept))).round().astype(int))]
+    first = max(int(np.argmax(arm.moving)) - 1, 0)
+    offs, angles = [], []
+    for i in frames:
+        cam_from = np.linalg.inv(cameras[i])
+        pts = (cam_from[:3, :3] @ track.chains[i][:, first:] + cam_from[:3, 3:4]).T
+        offs.append(footprint_outside(pts, view.limbs[i], view, cfg.link_radius))
+        angles.append(forearm_angle(pts[1:-1], view.limbs[i]))  # from the shoulder to the wrist (not the palm centre)
+    score.off_corridor = float(np.nanmean(offs)) if np.isfinite(offs).any() else float("nan")
+    score.forearm_deg = float(np.nanmean(angles)) if np.isfinite(angles).any() else float("nan")
+
+
+def reach_centre(T0: np.ndarray, targets: np.ndarray, valid: np.ndarray, arm: ArmModel, frac: float) -> tuple[np.ndarray, float]:
+    """``T0`` slid along its horizontal forward axis so the median distance from the arm's first
+    joint to the valid wrist targets is ``frac`` L_r (a long arm next to the human shoulder folds
+    onto targets 0.3 L_r away and finds no wrist orientation: it belongs further back); returns
+    the new base and the distance, in L_r, it started from."""
+    pts = targets[valid, :3, 3]
+
+    def dist(shift: float) -> float:
+        T = T0.copy()
+        T[:3, 3] = T0[:3, 3] + shift * T0[:3, 0]
+        return float(np.median(np.linalg.norm(pts - (T[:3, :3] @ arm.shoulder + T[:3, 3]), axis=1))) / arm.reach
+
+    lo, hi = -arm.reach, arm.reach  # distance falls with the shift over the range that matters: bisect
+    for _ in range(40):
+        mid = (lo + hi) / 2
+        lo, hi = (lo, mid) if dist(mid) < frac else (mid, hi)
+    T = T0.copy()
+    T[:3, 3] = T0[:3, 3] + lo * T0[:3, 0]
+    return T, dist(0.0)
 
 
 def search_virtual_base(
@@ -334,15 +479,19 @@ def search_virtual_base(
     critical: np.ndarray | None = None,
     init_base: np.ndarray | None = None,
     cameras: np.ndarray | None = None,
+    view: BaseView | None = None,
 ) -> VirtualBaseResult:
-    """Search the 27 bases for one sequence and pick one by the review policy.
+    """Search the 27 bases for one sequence (and, when none survives, a reach-aware second
+    grid) and pick one by the review policy.
 
     targets: (T,4,4) camera_from_wrist-link targets (``ArmModel.wrist_targets``);
     up: world up in the camera frame (default: image up, -y); support_plane: (4,) (n, d)
     in the camera frame or None (check not possible); shoulders: (2,3) left/right
     shoulder in the camera frame or None; critical: (T,) frames that must be reachable
-    (default: every valid frame); init_base: override the grid centre; cameras: (T,3) the
-    camera centre per frame in the targets' frame (arm links must keep clear of the head).
+    (default: every valid frame; ``critical_tolerance`` of them may fail); init_base:
+    override the grid centre; cameras: (T,4,4) the camera pose per frame in the targets'
+    frame (arm links must keep out of the operator's head and torso; None: no check);
+    view: the image-side measures of plausibility (None: not ranked).
     """
     arm = arm_model(embodiment_id)
     targets = np.asarray(targets, float)
@@ -355,14 +504,30 @@ def search_virtual_base(
                                  "no frame with a valid wrist", None, None, None,
                                  np.full(n, Reason.NO_KEYPOINTS, dtype=STATUS_DTYPE))
     T0 = init_base if init_base is not None else initial_base(targets, valid, up, arm.reach, cfg, shoulders, arm.shoulder)
-    grid = candidate_grid(T0, arm.reach)
-    tracks, scores = [], []
-    first = int(np.flatnonzero(valid)[0])
-    for k, g in enumerate(grid):
-        hint = tracks[-1].arm_q[first] if tracks and tracks[-1].status[first] != Reason.OUT_OF_REACH else None
-        tr = _evaluate(arm, g[3], targets, valid, support_plane, cfg, hint, cameras)
-        tracks.append(tr)
-        scores.append(_score(k, g, tr, arm, valid, critical, cfg))
+    tracks: list[_Track] = []
+    scores: list[CandidateScore] = []
+
+    def run(grid, stage: str) -> None:
+        first = int(np.flatnonzero(valid)[0])
+        for g in grid:
+            hint = tracks[-1].arm_q[first] if tracks and tracks[-1].status[first] != Reason.OUT_OF_REACH else None
+            tr = _evaluate(arm, g[3], targets, valid, support_plane, cfg, hint, cameras, up)
+            sc = _score(len(tracks), g, tr, arm, valid, critical, cfg)
+            sc.stage = stage
+            if sc.reason == Reason.OK and view is not None and cameras is not None:
+                _plausibility(sc, tr, arm, cameras, view, cfg)
+            tracks.append(tr)
+            scores.append(sc)
+
+    run(candidate_grid(T0, arm.reach), "grid")
+    T1, start_frac = reach_centre(T0, targets, valid, arm, cfg.refine_reach_frac)
+    diagnosis = {"target_distance_Lr": round(start_frac, 3), "grid": _causes(scores), "refined": False,
+                 "plausibility": "not ranked" if view is None else
+                 ("tracked arm" if view.tracked_arm else "forearm continued from the hand (the source does not track the arm)")}
+    if not any(c.reason == Reason.OK for c in scores):
+        head = np.zeros(3) if cameras is None else cameras[int(np.flatnonzero(valid)[0])][:3, 3]
+        run(refine_grid(T1, arm.reach, T0[:3, 3] - head), "refine")
+        diagnosis.update(refined=True, refine=_causes(scores[27:]))
     ranking = sorted((c.index for c in scores if c.reason == Reason.OK), key=lambda i: scores[i].key())
     for r, i in enumerate(ranking):
         scores[i].rank = r
@@ -377,15 +542,26 @@ def search_virtual_base(
         st = tracks[best].status.copy()
         st[st == Reason.OK] = Reason.NO_VALID_BASE
         return VirtualBaseResult(embodiment_id, arm.reach, scores, [], None, "none", int(Reason.NO_VALID_BASE),
-                                 f"no valid base among {len(scores)} candidates (most common cause: {cause.name.lower().replace('_', ' ')})",
-                                 None, None, None, st, trajectories, arm_tracks, frame_status)
+                                 f"no valid base among {len(scores)} candidates (most common cause: {_name(cause)}; wrist "
+                                 f"targets {start_frac:.2f} L_r from the arm's first joint)",
+                                 None, None, None, st, trajectories, arm_tracks, frame_status, diagnosis)
     if cfg.review == "auto_top1":
         chosen, by = ranking[0], "auto:top1"
     else:
         chosen, by = ranking[0], "pending:manual"  # provisional until `handedit review` decides
     return _with_choice(VirtualBaseResult(embodiment_id, arm.reach, scores, ranking, None, by, int(Reason.OK), "",
-                                          None, None, None, np.zeros(n, STATUS_DTYPE), trajectories, arm_tracks, frame_status),
+                                          None, None, None, np.zeros(n, STATUS_DTYPE), trajectories, arm_tracks,
+                                          frame_status, diagnosis),
                         chosen, tracks[chosen], arm)
+
+
+def _causes(scores: list[CandidateScore]) -> dict[str, int]:
+    """Candidates per verdict (``ok`` or the discarding cause)."""
+    out: dict[str, int] = {}
+    for c in scores:
+        k = _name(Reason(c.reason))
+        out[k] = out.get(k, 0) + 1
+    return out
 
 
 def _with_choice(res: VirtualBaseResult, chosen: int, track: _Track, arm: ArmModel) -> VirtualBaseResult:

@@ -1,0 +1,98 @@
+"""Base plausibility inside the virtual-base search: the paper's operator review, as numbers.
+
+The paper's operator drops a base whose robot arm fills the view where no human arm was,
+passes through the operator's head, or reaches in from an odd direction. Two measures
+stand in for that look, from geometry the search already has (no rendering; the third,
+the operator's head and torso as a keep-out volume, is ``virtual_base.body_distance``):
+
+* ``footprint_outside``: the share of the robot arm's projected footprint (capsules around
+  its links) outside the human arm's corridor in the image (the human hand, wrist, forearm
+  and upper arm, as far as the source tracks them, grown by a share of the image width):
+  the robot must appear where the human arm was;
+* ``forearm_angle``: the angle between the robot's forearm and the human forearm (ties go
+  to the candidate that follows the human arm).
+
+Where the source does not track the arm, the human forearm is continued from the hand
+(wrist, away from the middle knuckle, ``FOREARM_HINT_M``): its direction, not its length.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from handedit.camera import Intrinsics
+from handedit.keypoints import JOINT_INDEX, WRIST
+from handedit.vision.arm import CORRIDOR_FRAC, FOREARM_RADIUS_M, capsule, corridor, outside_share, tracked
+
+FOREARM_HINT_M = 0.25  # a forearm's length: the hinted forearm runs this far back from the wrist
+FOOTPRINT_WIDTH = 160  # the footprint is measured on an image this many pixels wide (a share, not a mask)
+
+
+@dataclass(frozen=True)
+class BaseView:
+    """What the search needs to judge a base in the image, for one side of one sequence.
+
+    intr: the camera at the working resolution (the mirrored camera for a left side);
+    limbs: (T,m,3) per frame the human polyline palm -> wrist -> elbow -> shoulder in the
+    camera frame, NaN after its tracked part (``human_limbs``); tracked_arm: whether the
+    elbow/shoulder come from the source (else the forearm is the hint)."""
+
+    intr: Intrinsics
+    limbs: np.ndarray
+    tracked_arm: bool
+
+
+def human_limbs(keypoints: np.ndarray, arm_keypoints: np.ndarray | None = None,
+                arm_valid: np.ndarray | None = None) -> tuple[np.ndarray, bool]:
+    """(T,m,3) palm centre -> wrist -> elbow -> shoulder (camera frame) per frame, NaN after
+    the first untracked joint; without tracked arm joints, palm -> wrist -> hinted elbow.
+    Returns the polylines and whether any frame tracks the arm."""
+    kp = np.asarray(keypoints, float)
+    palm, wrist = kp[:, JOINT_INDEX["middle_mcp"]], kp[:, WRIST]
+    axis = wrist - palm
+    norm = np.linalg.norm(axis, axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        hint = wrist + FOREARM_HINT_M * axis / norm
+    if arm_keypoints is None or arm_valid is None or not np.asarray(arm_valid, bool)[:, 0].any():
+        return np.stack([palm, wrist, hint], axis=1), False
+    arm = np.asarray(arm_keypoints, float)[:, :2].copy()  # elbow, shoulder
+    ok = np.cumprod(np.asarray(arm_valid, bool)[:, :2], axis=1).astype(bool)
+    arm[~ok] = np.nan
+    elbow_missing = ~ok[:, 0]
+    arm[elbow_missing, 0] = hint[elbow_missing]  # no elbow in a frame: the hint stands in
+    return np.concatenate([palm[:, None], wrist[:, None], arm], axis=1), True
+
+
+def footprint_outside(robot_cam: np.ndarray, limb_cam: np.ndarray, view: BaseView, link_radius: float,
+                      frac: float = CORRIDOR_FRAC) -> float:
+    """Share of the robot arm's footprint (capsules of ``link_radius`` around the polyline
+    ``robot_cam``, camera frame) outside the human arm's corridor (``limb_cam``); NaN when the
+    robot is not in view."""
+    w = FOOTPRINT_WIDTH
+    h = max(1, int(round(view.intr.height * w / view.intr.width)))
+    intr = view.intr.scaled(w, h)
+    robot = capsule(robot_cam, intr, link_radius, (h, w))
+    if not robot.any():
+        return float("nan")
+    line = tracked(limb_cam)
+    human = capsule(line, intr, FOREARM_RADIUS_M, (h, w)) if len(line) >= 2 else np.zeros((h, w), bool)
+    return outside_share(robot, corridor(human, None, frac))
+
+
+def forearm_angle(robot_cam: np.ndarray, limb_cam: np.ndarray) -> float:
+    """Angle (degrees) between the robot's forearm (wrist -> its elbow: the link point farthest
+    from the shoulder-wrist line) and the human forearm (wrist -> elbow); NaN when either is
+    missing. ``robot_cam``: the arm's polyline from its shoulder to its wrist."""
+    pts = np.asarray(robot_cam, float)
+    if len(pts) < 3 or not np.isfinite(limb_cam[1:3]).all():
+        return float("nan")
+    s, w = pts[0], pts[-1]
+    axis = (w - s) / (np.linalg.norm(w - s) + 1e-12)
+    rel = pts[1:-1] - s
+    off = np.linalg.norm(rel - (rel @ axis)[:, None] * axis, axis=1)
+    a = pts[1 + int(np.argmax(off))] - w
+    b = limb_cam[2] - limb_cam[1]
+    c = a @ b / (np.linalg.norm(a) * np.linalg.norm(b) + 1e-12)
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))

@@ -1,0 +1,192 @@
+"""Base plausibility inside the virtual-base search: the operator's head and torso as a
+keep-out volume (BODY_COLLISION), critical frames with a tolerance, the reach-aware second
+grid, and the ranking by the robot's footprint against the human arm's corridor."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from handedit.camera import Intrinsics
+from handedit.reasons import Reason
+from handedit.retarget.arm import arm_model
+from handedit.retarget.hand_arm import critical_frames
+from handedit.retarget.plausibility import BaseView, footprint_outside, forearm_angle, human_limbs
+from handedit.retarget.virtual_base import (
+    CandidateScore,
+    VirtualBaseConfig,
+    body_distance,
+    reach_centre,
+    refine_grid,
+    search_virtual_base,
+)
+from test_virtual_base import UP, UR5_Q, _known_sequence, _true_base
+
+CFG = VirtualBaseConfig()
+EMB = "ur5_shadow"
+INTR = Intrinsics(300.0, 300.0, 160.0, 120.0, 320, 240)
+
+
+@pytest.fixture
+def assets(monkeypatch, robots_dir: Path) -> Path:
+    monkeypatch.setenv("HANDEDIT_ASSET_DIRS", str(robots_dir))
+    return robots_dir
+
+
+def _camera_at(p: np.ndarray, n: int) -> np.ndarray:
+    """(n,4,4) camera poses (image up = UP, looking along +z) at point ``p``."""
+    T = np.eye(4)
+    T[:3, 3] = p
+    return np.tile(T, (n, 1, 1))
+
+
+def test_body_distance_is_a_head_torso_capsule():
+    cam = _camera_at(np.zeros(3), 1)[0]  # camera frame: up is -y, forward +z
+    through_head = np.array([[-0.3, 0.0, -0.1], [0.3, 0.0, -0.1]])  # 10 cm behind the lens, across the head
+    beside = np.array([[0.4, 0.0, -0.1], [0.4, 0.5, -0.1]])  # 40 cm to the side, down along the torso
+    below = np.array([[-0.3, 0.4, -0.1], [0.3, 0.4, -0.1]])  # across the chest, 40 cm below the eyes
+    assert body_distance(through_head, cam, UP, 0.10, 0.6) == pytest.approx(0.0, abs=1e-9)
+    assert body_distance(below, cam, UP, 0.10, 0.6) == pytest.approx(0.0, abs=1e-9)
+    assert body_distance(beside, cam, UP, 0.10, 0.6) == pytest.approx(0.4, abs=1e-9)
+
+
+def test_arm_through_the_head_is_a_body_collision(assets):
+    """The true base's own trajectory, with the camera (head) put on its elbow: every frame
+    fails BODY_COLLISION there; with the head far away the same candidate is kept."""
+    targets, Tb = _known_sequence()
+    arm = arm_model(EMB)
+    valid = np.ones(len(targets), bool)
+    free = search_virtual_base(targets, valid, EMB, CFG, up=UP, init_base=Tb, cameras=_camera_at(np.array([5.0, 0, 0]), 6))
+    assert free.candidates[13].reason == Reason.OK
+    elbow = (Tb[:3, :3] @ arm.chain(free.arm_tracks[13][0]) + Tb[:3, 3:4])[:, np.flatnonzero(arm.proximal)[1]]
+    hit = search_virtual_base(targets, valid, EMB, CFG, up=UP, init_base=Tb, cameras=_camera_at(elbow, 6))
+    assert hit.candidates[13].reason == Reason.BODY_COLLISION
+    assert hit.frame_status[13, 0] == Reason.BODY_COLLISION
+    assert "body collision" in hit.candidates[13].detail
+
+
+def test_one_failed_frame_in_fifty_does_not_discard_a_candidate(assets):
+    """critical_tolerance: 1 of 50 critical frames may fail; that frame alone is rejected."""
+    targets, Tb = _known_sequence(n=50)
+    arm = arm_model(EMB)
+    bad = targets.copy()
+    bad[20, :3, 3] += Tb[:3, 0] * 3.0 * arm.max_reach  # one frame far out of reach
+    valid = np.ones(len(bad), bool)
+    res = search_virtual_base(bad, valid, EMB, CFG, up=UP, init_base=Tb)
+    assert res.reason == Reason.OK and res.chosen is not None
+    assert res.status[20] == Reason.OUT_OF_REACH and (np.delete(res.status, 20) == Reason.OK).all()
+    strict = search_virtual_base(bad, valid, EMB, CFG.model_copy(update={"critical_tolerance": 0.0}), up=UP, init_base=Tb,
+                                 critical=valid)
+    assert not set(res.ranking) & set(strict.ranking)  # without the tolerance, every one of them is discarded
+    # a frame that is not critical never discards a candidate, whatever the tolerance
+    crit = valid.copy()
+    crit[20] = False
+    lenient = search_virtual_base(bad, valid, EMB, CFG.model_copy(update={"critical_tolerance": 0.0}), up=UP,
+                                  init_base=Tb, critical=crit)
+    assert set(lenient.ranking) >= set(res.ranking) and lenient.chosen == res.chosen
+
+
+def test_critical_frames_are_hands_in_view():
+    kp = np.zeros((3, 21, 3))
+    kp[:, :, 2] = 0.5
+    kp[1, :, 0] = 5.0  # far right of the view
+    kp[2, 0, 0] = 5.0  # only the wrist is out of view: still a hand in the image
+    crit = critical_frames(kp, np.ones((3, 21), bool), np.ones(3, bool), INTR)
+    assert crit.tolist() == [True, False, True]
+    assert critical_frames(kp, np.ones((3, 21), bool), np.array([True, True, False]), None).tolist() == [True, True, False]
+
+
+def test_reach_centre_and_the_second_grid(assets):
+    targets, Tb = _known_sequence()
+    arm = arm_model(EMB)
+    T1, start = reach_centre(Tb, targets, np.ones(len(targets), bool), arm, 0.65)
+    d = np.median(np.linalg.norm(targets[:, :3, 3] - (T1[:3, :3] @ arm.shoulder + T1[:3, 3]), axis=1)) / arm.reach
+    assert d == pytest.approx(0.65, abs=1e-3) and start != pytest.approx(0.65, abs=1e-3)
+    np.testing.assert_allclose(np.cross(T1[:3, 3] - Tb[:3, 3], Tb[:3, 0]), 0, atol=1e-9)  # slid along forward only
+    out = np.array([1.0, 0.0, 0.0])
+    grid = refine_grid(T1, arm.reach, out)
+    assert len(grid) == 27
+    assert {(g[0], g[4]) for g in grid} == {(a, b) for a in (0.0, 0.15, 0.3) for b in (0.0, 0.15, 0.3)}
+    for lat, fwd, yaw, T, down in grid:  # outward, forward and down (along world up), upright and unyawed
+        expect = T1[:3, 3] + (lat * out + fwd * T1[:3, 0] - down * T1[:3, 2]) * arm.reach
+        np.testing.assert_allclose(T[:3, 3], expect, atol=1e-12)
+        np.testing.assert_allclose(T[:3, :3], T1[:3, :3])
+        assert yaw == 0.0
+
+
+def test_no_base_in_the_grid_is_refined(assets):
+    """Targets beyond the grid's reach: the paper's 27 all fail, the second grid (centred at
+    0.65 L_r from the targets) finds the base, and the diagnosis says so."""
+    targets, Tb = _known_sequence()
+    arm = arm_model(EMB)
+    far = Tb.copy()
+    far[:3, 3] -= Tb[:3, 0] * 0.8 * arm.max_reach  # the grid centre 0.8 max reach behind the true base
+    res = search_virtual_base(targets, np.ones(len(targets), bool), EMB, CFG.model_copy(update={"n_seeds": 3}), up=UP,
+                              init_base=far)
+    assert res.diagnosis["refined"] and len(res.candidates) == 54
+    assert res.diagnosis["grid"].get("ok", 0) == 0 and res.diagnosis["refine"].get("ok", 0) > 0
+    assert res.reason == Reason.OK and res.candidates[res.chosen].stage == "refine"
+
+
+def test_footprint_and_forearm_measures():
+    limb = np.array([[0.0, 0.05, 0.45], [0.0, 0.1, 0.4], [0.1, 0.3, 0.35], [0.2, 0.4, 0.1]])  # palm, wrist, elbow, shoulder
+    view = BaseView(INTR, limb[None], True)
+    along = np.stack([limb[3], limb[2], limb[1]])  # the robot arm where the human arm was
+    across = np.array([[-0.3, -0.2, 0.5], [-0.2, -0.1, 0.45], [0.0, 0.1, 0.4]])  # in from the top left
+    assert footprint_outside(along, limb, view, 0.035) < 0.05
+    assert footprint_outside(across, limb, view, 0.035) > 0.5
+    assert np.isnan(footprint_outside(np.array([[5.0, 0, 0.5], [6.0, 0, 0.5]]), limb, view, 0.035))  # not in view
+    assert forearm_angle(along, limb) < 5.0
+    assert forearm_angle(across, limb) > 60.0
+
+
+def test_human_limbs_hint_the_forearm_without_arm_tracking():
+    kp = np.zeros((2, 21, 3))
+    kp[:, 0] = (0.0, 0.0, 0.5)  # wrist
+    kp[:, 9] = (0.0, -0.1, 0.5)  # middle knuckle above it
+    limbs, tracked = human_limbs(kp)
+    assert not tracked and limbs.shape == (2, 3, 3)
+    np.testing.assert_allclose(limbs[0, 2], (0.0, 0.25, 0.5))  # continued down, away from the knuckle
+    arm = np.zeros((2, 3, 3))
+    arm[:, 0], arm[:, 1] = (0.0, 0.3, 0.4), (0.2, 0.4, 0.1)
+    valid = np.array([[True, True, True], [False, True, True]])
+    limbs, tracked = human_limbs(kp, arm, valid)
+    assert tracked and limbs.shape == (2, 4, 3)
+    np.testing.assert_allclose(limbs[0, 2:], arm[0, :2])
+    np.testing.assert_allclose(limbs[1, 2], (0.0, 0.25, 0.5))  # elbow not tracked: the hint, and no shoulder
+    assert np.isnan(limbs[1, 3]).all()
+
+
+def test_plausibility_ranks_before_reachability():
+    def score(off, reach, fa=0.0):
+        return CandidateScore(0, 0, 0, 0, np.eye(4), 1, "", 1.0, reach, 5.0, 0.2, 0.1, off_corridor=off, forearm_deg=fa)
+
+    assert score(0.0, 0.97).key() < score(0.4, 1.0).key()  # a robot where the arm was beats a fuller reach
+    assert score(0.0, 1.0, fa=10).key() < score(0.0, 1.0, fa=80).key()  # ties: the forearm that follows the human's
+    assert score(0.02, 1.0).key() < score(float("nan"), 1.0).key()  # not in view ranks last
+
+
+def test_search_ranks_by_footprint(assets):
+    """With a view, kept candidates carry footprint and forearm measures, and the ranking
+    follows the key (footprint before reachability)."""
+    targets, Tb = _known_sequence()
+    n = len(targets)
+    arm = arm_model(EMB)
+    cams = _camera_at(np.array([0.0, 0.0, -0.6]), n)  # behind the scene, looking along +z
+    cam_from = np.linalg.inv(cams[0])
+    wrist = (cam_from[:3, :3] @ targets[:, :3, 3].T + cam_from[:3, 3:4]).T
+    chain = Tb[:3, :3] @ arm.chain(np.asarray((arm.lo_s + arm.hi_s) / 2 + np.array(UR5_Q))) + Tb[:3, 3:4]
+    elbow = cam_from[:3, :3] @ chain[:, np.flatnonzero(arm.proximal)[1]] + cam_from[:3, 3]
+    limbs = np.stack([np.stack([w, w, elbow, elbow + (0, -0.1, 0)]) for w in wrist])
+    intr = Intrinsics(400.0, 400.0, 320.0, 240.0, 640, 480)
+    res = search_virtual_base(targets, np.ones(n, bool), EMB, CFG, up=UP, init_base=Tb, cameras=cams,
+                              view=BaseView(intr, limbs, True))
+    kept = [res.candidates[i] for i in res.ranking]
+    assert len(kept) > 1 and all(np.isfinite(c.off_corridor) and np.isfinite(c.forearm_deg) for c in kept)
+    assert all(res.candidates[i].off_corridor == 0.0 and res.candidates[i].forearm_deg == 0.0
+               for i in range(27) if i not in res.ranking)  # discarded candidates are not measured
+    keys = [c.key() for c in kept]
+    assert keys == sorted(keys) and keys[0][1] == min(k[1] for k in keys)
+    assert res.diagnosis["plausibility"] == "tracked arm"
