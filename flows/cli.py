@@ -50,7 +50,9 @@ def _build_config(args: argparse.Namespace):
         from handedit.flows.curate import load_config
 
         config = load_config(args.config, args.cluster, args.out)
-        return config.model_copy(update={"take_over": True}) if args.take_over else config
+        update = {**({"take_over": True} if args.take_over else {}),
+                  **({"fail_below_kept": args.fail_below_kept} if args.fail_below_kept is not None else {})}
+        return config.model_copy(update=update) if update else config
     if not args.out:
         raise SystemExit("handedit curate: --out DIR is required (or --config FILE with an 'out' field)")
     clips: list = []
@@ -84,6 +86,8 @@ def _build_config(args: argparse.Namespace):
         spec = yaml.safe_load(Path(args.cluster).read_text()) or {}
         cluster = ClusterConfig.model_validate(spec.get("cluster", spec))
     extra = {"qc": {"keep": args.keep}} if args.keep else {}
+    if args.fail_below_kept is not None:
+        extra["fail_below_kept"] = args.fail_below_kept
     if args.estimate_hands or args.hand_pose_model:
         extra["estimate_hands"] = {**({"mode": args.estimate_hands} if args.estimate_hands else {}),
                                    **({"model_path": args.hand_pose_model} if args.hand_pose_model else {})}
@@ -154,6 +158,10 @@ def cmd_curate(args: argparse.Namespace) -> int:
     print_summary(summary)
     if summary.get("clips", {}).get("curated", 1) == 0:
         print("handedit curate: nothing was curated: no clip could be read (see the reasons above)", file=sys.stderr)
+        return 1
+    result = summary.get("outcome") or {}
+    if result.get("failed"):
+        print("handedit curate: the run failed: " + "; ".join(result["reasons"]), file=sys.stderr)
         return 1
     return 0
 
@@ -290,6 +298,9 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("--workers", type=int, default=2, help="local Dask worker processes")
     c.add_argument("--address", help="Dask scheduler address to run on an existing cluster")
     c.add_argument("--cluster", help="cluster spec YAML (deploy/cluster/*.yaml)")
+    c.add_argument("--fail-below-kept", type=float, metavar="SHARE",
+                   help="exit 1 (Prefect: Failed) when the kept share of frame x embodiment pairs is at or below SHARE "
+                        "(default 0: when nothing is kept); failed chunks always fail the run")
     c.add_argument("--no-progress", action="store_true")
     c.set_defaults(func=cmd_curate)
 

@@ -184,6 +184,9 @@ class CurateConfig(BaseModel):
                              "for its own later stages that read them (storage.handoff); 0: every read decodes the store")
     reuse_mib: int = Field(512, ge=0, description="other tasks' chunks a worker decoded (a clip's background, frames, masks), "
                            "kept (up to this many MiB per worker process) for its next embodiment task of the clip; 0: off")
+    fail_below_kept: float = Field(0.0, ge=0, le=1, description="the run fails (exit status 1, Prefect state Failed) when the "
+                                   "share of frame x embodiment pairs kept is at or below this (0: when nothing is kept); a "
+                                   "run with failed chunks fails too")
     estimate_hands: EstimateHandsConfig = EstimateHandsConfig()
     registration: RegistrationConfig = RegistrationConfig()
     segment: SegmentConfig = SegmentConfig()

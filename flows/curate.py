@@ -342,7 +342,36 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
             bar.close()
     for clip_id, err in summary["clip_errors"].items():
         logger.error("clip %s rejected: %s", clip_id, err)
-    return _finish(loc, summary, started)
+    summary = _finish(loc, summary, started)
+    summary["outcome"] = outcome(summary, config.fail_below_kept)
+    if summary["outcome"]["failed"]:
+        from prefect.states import Failed
+
+        logger.error("curate failed: %s", "; ".join(summary["outcome"]["reasons"]))
+        return Failed(message="; ".join(summary["outcome"]["reasons"]), data=summary)
+    logger.info("curate finished: %s of %s frame x embodiment pairs kept", summary["outcome"]["kept"],
+                summary["outcome"]["pairs"])
+    return summary
+
+
+def outcome(summary: dict, fail_below_kept: float) -> dict:
+    """Whether a run failed, and why: chunks that failed after their retries, shards left
+    incomplete, or a kept share (QC-passed frame x embodiment pairs over all of them) at or
+    below ``fail_below_kept`` (0: nothing kept). Partial success is a success with its share."""
+    qc = [r for r in summary.get("status", []) if r["stage"] == "qc"]
+    pairs = sum(int(r["frames"]) for r in qc)
+    kept = sum(int(r["frames"]) for r in qc if r["status"] == "OK")
+    share = kept / pairs if pairs else 0.0
+    reasons = []
+    failed_chunks = sum(int(v.get("failed", 0)) for v in summary.get("stages", {}).values())
+    if failed_chunks:
+        reasons.append(f"{failed_chunks} chunk(s) failed after their retries (see the errors above; re-run to retry them)")
+    if summary.get("shards", {}).get("incomplete"):
+        reasons.append(f"{summary['shards']['incomplete']} shard(s) left incomplete")
+    if share <= fail_below_kept:
+        reasons.append(f"kept {kept} of {pairs} frame x embodiment pairs ({share:.1%}), at or below fail_below_kept "
+                       f"{fail_below_kept:.1%}" if pairs else "no frame reached QC")
+    return {"failed": bool(reasons), "reasons": reasons, "kept": kept, "pairs": pairs, "kept_share": round(share, 4)}
 
 
 def _finish(loc: Location, summary: dict, started: str) -> dict:
@@ -401,7 +430,11 @@ def run_curate(config: CurateConfig, progress: bool = False) -> dict:
     preflight(config)
     with run_api() as api:
         _warn_unreachable_api(api, config)
-        return curate(config, progress=progress)
+        state = curate(config, progress=progress, return_state=True)
+        summary = state.result(raise_on_failure=False)
+        if isinstance(summary, BaseException):  # the driver itself raised: not a run outcome
+            raise summary
+        return summary
 
 
 def _warn_unreachable_api(api: str, config: CurateConfig) -> None:
@@ -437,4 +470,9 @@ def load_config(config_path: str | Path, cluster_path: str | Path | None = None,
 def curate_from_config(config_path: str, cluster_path: str | None = None, out: str | None = None) -> dict:
     """Deployment entry point (deploy/prefect.yaml): runs ``curate`` as a subflow on the
     Dask cluster the config names, so one deployment serves local, Slurm or Kubernetes."""
-    return run_curate(load_config(config_path, cluster_path, out))
+    summary = run_curate(load_config(config_path, cluster_path, out))
+    if summary.get("outcome", {}).get("failed"):
+        from prefect.states import Failed
+
+        return Failed(message="; ".join(summary["outcome"]["reasons"]), data=summary)
+    return summary
