@@ -16,7 +16,8 @@ coverage (the share of the projected forearm capsule, wrist to elbow, 4 cm radiu
 the hand-arm mask: a sleeve left beside the robot arm scores low), per clip and side,
 pixel-weighted over the frames the hand is in view; the kept hand-arm frames with more than
 25 % of a robot outside the human arm's corridor (the hand-arm mask plus the capsule, grown
-by 5 % of the image width); and the RESIDUE rejections per clip.
+by 5 % of the image width); and the RESIDUE rejections per clip: restoration's (frames) and
+composite's, which judges residue where no robot covers it (frame-sides per embodiment).
 ``--figure`` writes source | masks | restored background | pseudo-GT (two robots) for a few
 frames, one sheet per embodiment (``NAME-<embodiment>.png`` when there are several), made
 from the run (the EgoDex licence forbids committing it).
@@ -94,7 +95,7 @@ def arm_report(root) -> dict:
     from handedit.storage.layout import clip_path
     from handedit.vision.arm import coverage, forearm_capsule, limbs, off_arm_shares
 
-    out = {"coverage": {}, "off_arm": {}, "residue": {}}
+    out = {"coverage": {}, "off_arm": {}, "residue": {}, "residue_composite": {}}
     for c in sorted(root["clips"].group_keys()):
         ing, reg, seg = (root[Unit(s, c).path] for s in ("ingest", "registration", "segment"))
         if "arm_keypoints" not in reg:
@@ -119,6 +120,9 @@ def arm_report(root) -> dict:
         L = limbs(kp, arm, arm_ok)
         embs = root[f"{clip_path(c)}/embodiments"] if f"{clip_path(c)}/embodiments" in root else None
         for emb in sorted(embs.group_keys()) if embs is not None else []:
+            comp = Unit("composite", c, embodiment=emb)
+            if comp.path in root:
+                out["residue_composite"][(c, emb)] = int((root[comp.path]["hand_status"][:] == Reason.RESIDUE).sum())
             if get_embodiment(emb).track != "hand_arm":
                 continue
             qc = root[Unit("qc", c, embodiment=emb).path]
@@ -139,6 +143,9 @@ def print_arm_report(rep: dict) -> None:
     print("\nRESIDUE rejections (restore_background, both scopes), per clip:")
     for c, n in rep["residue"].items():
         print(f"  {c:<34} {n:>4}")
+    print("\nRESIDUE rejections in composite (restored pixels no robot covers), frame-sides per clip x embodiment:")
+    for (c, e), n in rep["residue_composite"].items():
+        print(f"  {c:<34} {e:<14} {n:>4}")
 
 
 def figures(root, clips: list[str], embs: list[str], path: Path) -> None:

@@ -344,6 +344,7 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
         logger.error("clip %s rejected: %s", clip_id, err)
     summary = _finish(loc, summary, started)
     summary["outcome"] = outcome(summary, config.fail_below_kept)
+    publish_artifacts(summary)
     if summary["outcome"]["failed"]:
         from prefect.states import Failed
 
@@ -352,6 +353,29 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
     logger.info("curate finished: %s of %s frame x embodiment pairs kept", summary["outcome"]["kept"],
                 summary["outcome"]["pairs"])
     return summary
+
+
+def publish_artifacts(summary: dict) -> None:
+    """The run's outcome in Prefect's UI (the flow run's Artifacts tab): frames per stage and
+    status, rejections per stage and reason, and a note with the verdict, the store and the
+    links (a LocalCluster's dashboard and a temporary API are gone when the command exits)."""
+    from prefect.artifacts import create_markdown_artifact, create_table_artifact
+
+    create_table_artifact([{k: r[k] for k in ("stage", "status", "frames")} for r in summary.get("status", [])],
+                          key="curate-frames", description="frames per stage and status (the store's clips)")
+    rejections = [{"stage": k.split(":", 1)[0], "reason": k.split(":", 1)[1], "frames": n}
+                  for k, n in sorted(summary.get("rejections", {}).items())]
+    if rejections:
+        create_table_artifact(rejections, key="curate-rejections", description="rejected frames per stage and reason")
+    res = summary["outcome"]
+    verdict = "**Failed**: " + "; ".join(res["reasons"]) if res["failed"] else "**Completed**"
+    lines = [f"# curate: {verdict}", "",
+             f"- kept: {res['kept']} of {res['pairs']} frame x embodiment pairs ({res['kept_share']:.1%})",
+             f"- store: `{summary.get('store')}`",
+             f"- shards: {summary.get('shards')}",
+             f"- Dask dashboard: {summary.get('dashboard') or '(none)'} (a local cluster's is gone when the run ends)",
+             f"- QA page: `handedit dashboard {summary.get('store')}`"]
+    create_markdown_artifact("\n".join(lines), key="curate-outcome", description="the run's verdict, store and links")
 
 
 def outcome(summary: dict, fail_below_kept: float) -> dict:

@@ -134,7 +134,7 @@ def embodiment_nodes(clip: ClipPlan, emb: str, scope: str, frames_per_chunk: int
         nodes.append(Node(ret, 0, 0, clip.n_frames, *_hand_arm_retarget(ingest, registration, segment, ranges, base_ctx, clip)))
     for k, (s, e) in enumerate(ranges):
         rk = 0 if seq else k  # the retarget node a chunk reads
-        comp_deps = [Dep(restore, k, ("background", "status")),
+        comp_deps = [Dep(restore, k, ("background", "hole", "status")),
                      Dep(ren, k, ("rgba", "depth", "robot_side", "hand_status", "status")),
                      Dep(segment, k, (SCOPE_MASK[scope], "hand_status")), Dep(ingest, k, ("frames",)),
                      Dep(registration, k, ("keypoints", "keypoints_valid"))]

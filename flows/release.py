@@ -49,6 +49,8 @@ class ReleaseConfig(BaseModel):
     embodiments: list[str] = Field(default_factory=list, description="only these (default: every curated one)")
     target_shard_bytes: int = Field(TARGET_SHARD_BYTES, gt=0, description="~size of one WebDataset shard")
     cluster: ClusterConfig = ClusterConfig()
+    publish_unchanged: bool = Field(True, description="publish a new version even when its pairs and shards are the "
+                                    "parent's (the scheduled release sets False: nothing changed, nothing published)")
 
 
 def _digests(records: dict, chunk: int) -> list[str]:
@@ -180,8 +182,13 @@ def release(cfg: ReleaseConfig) -> dict:
     table = pd.DataFrame([{**p.meta(), "id": p.id, "sides": ",".join(p.sides), "shard": k} for p, k in pairs],
                          columns=["id", "clip", "embodiment", "frame", "sides", "track", "dataset", "task", "instruction",
                                   "reference", "content", "shard"])
-    version = next_version(loc)
     changes = changelog(parent_pairs, table)
+    if parent and not cfg.publish_unchanged and not jobs and not any(changes[k] for k in ("added", "removed", "changed")) \
+            and set(used) == set(reusable):
+        logger.info("nothing changed since %s (the same %d pairs in the same %d shards): no version published",
+                    parent, len(table), len(used))
+        return {**parent_manifest, "published": False}
+    version = next_version(loc)
     sheet = datasheet.build(table, _status(curated), _ledger(curated),
                             sorted(set(table["embodiment"])) if len(table) else [])
     loc.write_table(f"{version}/pairs.parquet", table)
@@ -258,8 +265,11 @@ def curate_and_release(config_path: str, releases: str, cluster_path: str | None
     config = load_config(config_path, cluster_path, out)
     summary = curate(config)
     manifest = release(ReleaseConfig(sources=[config.out], out=releases, target_shard_bytes=int(shard_mb * (1 << 20)),
-                                     cluster=config.cluster))
-    print(f"curated: {summary['shards']}; published {manifest['version']}: {manifest['counts']}")
+                                     cluster=config.cluster, publish_unchanged=False))
+    if manifest.get("published", True):
+        print(f"curated: {summary['shards']}; published {manifest['version']}: {manifest['counts']}")
+    else:
+        print(f"curated: {summary['shards']}; nothing changed since {manifest['version']}: no version published")
     return {"curate": {k: summary[k] for k in ("shards", "stages", "errors")}, "release": manifest}
 
 

@@ -182,6 +182,7 @@ ARRAYS: dict[str, tuple[ArraySpec, ...]] = {
     "restore_background": (
         ArraySpec("background", ("H", "W", 3), "uint8", ("y", "x", "rgb"), image=True),
         ArraySpec("filled_from_video", (), "float32", ()),
+        ArraySpec("hole", _MASK, "bool", _MASK_DIMS, image=True, fill=False),  # the restored pixels
         _STATUS,
     ),
     "retarget": (

@@ -30,7 +30,7 @@ def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     removed = {name: seg[name].any(axis=1) for name in {mask_name, features}}  # one array when the scope is "hand"
     result = restore(src["frames"], removed[mask_name], targets, RestoreConfig(**job.params), frame_ok=usable,
                      feature_masks=removed[features])
-    arrays = {"background": result.background, "filled_from_video": result.filled_from_video}
+    arrays = {"background": result.background, "filled_from_video": result.filled_from_video, "hole": result.hole}
     return StageOutput(arrays, combine(result.status, usable[targets]), method=result.method)
 
 

@@ -43,11 +43,19 @@ def test_a_run_that_keeps_nothing_fails_in_prefect_and_exits_1(tmp_path, capsys,
     run_id = next(line.split("/flow-run/")[1].split()[0] for line in captured.out.splitlines() if "/flow-run/" in line)
 
     async def state():
-        async with get_client() as client:
-            return (await client.read_flow_run(run_id)).state
+        from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterFlowRunId
 
-    st = asyncio.run(state())
+        async with get_client() as client:
+            run = await client.read_flow_run(run_id)
+            arts = await client.read_artifacts(artifact_filter=ArtifactFilter(flow_run_id=ArtifactFilterFlowRunId(any_=[run.id])))
+            return run.state, {a.key: a for a in arts}
+
+    st, arts = asyncio.run(state())
     assert st.is_failed() and "kept 0 of 8" in st.message
+    # the outcome in the flow run's Artifacts: frames and rejections per stage, the verdict with the store
+    assert {"curate-frames", "curate-rejections", "curate-outcome"} <= set(arts)
+    assert "ASSETS_MISSING" in str(arts["curate-rejections"].data) and "Failed" in str(arts["curate-outcome"].data)
+    assert str(tmp_path / "run") in str(arts["curate-outcome"].data)
 
 
 @pytest.mark.parametrize("floor, code", [(0.0, 0), (1.0, 1)])

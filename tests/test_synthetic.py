@@ -170,3 +170,20 @@ def test_hand_has_human_proportions(clip):
         assert all(0.015 < x < 0.05 for x in lengths), (name, lengths)
         if name != "thumb":
             assert lengths[0] > lengths[1] > 0.8 * lengths[2]  # proximal > middle >~ distal
+
+
+def test_a_still_clip_holds_its_hand_while_the_head_sways():
+    """``still``: the hand and object stay put in the world for the whole clip (restoration never
+    sees behind the hand), the camera keeps moving; a moving clip's fingerprint is unaffected."""
+    from handedit.sources.synthetic import make_clip_specs
+
+    still, moving = (make_clip_specs(1, seed=4, n_frames=12, width=96, height=72, still=s)[0] for s in (True, False))
+    chunks = {}
+    for name, spec in (("still", still), ("moving", moving)):
+        c = spec.open().read(0, 12)
+        wrist = np.einsum("tij,tj->ti", c.world_from_camera[:, :3, :3], c.keypoints[:, 0, 0].astype(float)) \
+            + c.world_from_camera[:, :3, 3]
+        chunks[name] = (c, np.linalg.norm(wrist - wrist[0], axis=1).max())
+    assert chunks["still"][1] < 1e-5 and chunks["moving"][1] > 0.05
+    assert np.abs(np.diff(chunks["still"][0].world_from_camera[:, :3, 3], axis=0)).max() > 1e-5  # the head sways
+    assert still.open().fingerprint != moving.open().fingerprint

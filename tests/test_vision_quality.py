@@ -89,7 +89,7 @@ def test_ghosting_and_residue_checks_fire():
     frames = np.repeat(base[None], 3, 0).copy()
     holes = np.zeros((3, 60, 80), bool)
     holes[1, 20:40, 30:50] = True
-    cfg = RestoreConfig(align="identity")
+    cfg = RestoreConfig(align="identity", residue_after_composite=False)
     feats = _Features(frames, holes, 640)
     ok = np.ones(3, bool)
     good = frames[1].copy()
@@ -100,6 +100,35 @@ def test_ghosting_and_residue_checks_fire():
     hand = good.copy()
     hand[holes[1]] = (200, 140, 110)  # skin colour
     assert _checks(hand, holes[1], 1, frames, holes, ok, feats, cfg) == Reason.RESIDUE
+    # by default composite judges residue, on the restored pixels no robot covers; here the
+    # neighbours saw the background behind the hand, so the frame still fails, as GHOSTING
+    deferred = RestoreConfig(align="identity")
+    assert _checks(hand, holes[1], 1, frames, holes, ok, feats, deferred) == Reason.GHOSTING
+
+
+def test_residue_is_judged_where_the_robot_leaves_the_hole_visible():
+    """A still hand leaves skin in the restored hole; a robot drawn over most of it hides the
+    residue (the frame is kept), a robot beside it does not (RESIDUE)."""
+    from handedit.vision.restore_background import visible_residue
+
+    rng = np.random.default_rng(1)
+    bg = np.repeat(rng.integers(30, 60, (1, 60, 80, 1)), 3, axis=-1).astype(np.uint8)  # grey, not skin
+    hole = np.zeros((1, 60, 80), bool)
+    hole[0, 15:45, 25:55] = True
+    bg[0][hole[0]] = (200, 140, 110)  # the hand was never seen behind: skin left
+    over = np.zeros_like(hole)
+    over[0, 12:48, 22:58] = True  # the robot covers the hole
+    beside = np.zeros_like(hole)
+    beside[0, :, :20] = True
+    assert not visible_residue(bg, hole, over, 0.25)[0]
+    assert visible_residue(bg, hole, beside, 0.25)[0]
+    partly = np.zeros_like(hole)
+    partly[0, 15:45, 25:48] = True  # a strip of 7 of 30 columns stays visible: 23 % of the hole
+    assert visible_residue(bg, hole, partly, 0.15)[0] and not visible_residue(bg, hole, partly, 0.30)[0]
+    assert visible_residue(bg, hole, beside, 0.90)[0]  # all of it visible: 100 % skin
+    clean = bg.copy()
+    clean[0][hole[0]] = (40, 60, 50)
+    assert not visible_residue(clean, hole, beside, 0.25)[0]
 
 
 def test_object_depth_matches_the_rendered_object_and_occludes_the_robot(clips):

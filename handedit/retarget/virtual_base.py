@@ -17,8 +17,10 @@ whole sequence:
   collision, or an arm link inside the operator's head and torso (a capsule from behind
   the head camera down along world up: ``body_distance``); a candidate is discarded when
   more than ``critical_tolerance`` of its critical frames fail (the paper does not say which
-  frames are critical; the caller passes the frames where the hand is in view and fully
-  tracked) or its kept frames jump; failed frames of a kept candidate are rejected alone;
+  frames are critical; the caller passes the frames where the hand is in view: see
+  ``hand_arm.critical_frames``), when it keeps less than ``min_reachability`` of the
+  sequence (a body collision fails that frame, never the candidate by itself) or when its
+  kept frames jump; failed frames of a kept candidate are rejected alone;
 * when none of the 27 survives, a second grid is centred where the arm's first joint sits
   ``refine_reach_frac`` L_r from the wrist targets (``reach_centre``: a long arm beside the
   human shoulder folds onto targets 0.3 L_r away and reaches no wrist orientation); the

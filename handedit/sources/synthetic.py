@@ -44,6 +44,7 @@ APPROACH_END = 0.40  # open hand reaches the pre-grasp pose
 CONTACT_END = 0.48  # palm arrives on the object
 CLOSE_START, CLOSE_END = 0.42, 0.60  # fingers close
 LIFT_START = 0.60  # hand and object lift together until the end
+STILL_AT = 0.55  # a still clip's moment of the script: the hand on the object, fingers closing
 
 _SEG_HAND, _SEG_ARM, _SEG_OBJ = (255, 0, 0), (0, 255, 0), (0, 0, 255)
 
@@ -60,6 +61,8 @@ class SyntheticSpec(pydantic.BaseModel):
     height: int = 480
     n_frames: int = 48
     fps: float = 30.0
+    still: bool = pydantic.Field(False, description="the hand holds its grasp (the script's moment STILL_AT) for the whole "
+                                 "clip while the head camera keeps swaying: restoration never sees behind it")
 
     @property
     def id(self) -> str:
@@ -185,6 +188,7 @@ class ClipPlan:
     ambient: float
     light_phase: float
     table_seed: int
+    still: bool = False  # SyntheticSpec.still
 
 
 def _hand_world_rot(yaw: float, roll: float, pitch: float) -> np.ndarray:
@@ -326,7 +330,7 @@ def make_plan(spec: SyntheticSpec) -> ClipPlan:
         key_dir=key_dir / np.linalg.norm(key_dir), key_rgb=np.array([1.0, rng.uniform(0.88, 1.0), rng.uniform(0.75, 0.95)]),
         key_intensity=float(rng.uniform(1.5, 2.3)), lamp_pos=lamp, lamp_intensity=float(rng.uniform(0.8, 1.6)),
         ambient=float(rng.uniform(0.15, 0.28)), light_phase=float(rng.uniform(0, 2 * np.pi)),
-        table_seed=int(rng.integers(2**31)),
+        table_seed=int(rng.integers(2**31)), still=spec.still,
     )
 
 
@@ -379,13 +383,14 @@ def _forearm_transform(world_from_hand: np.ndarray, elbow: np.ndarray) -> np.nda
 def frame_state(plan: ClipPlan, t: int, n_frames: int) -> FrameState:
     """The scene at frame t: a pure function of (plan, t), so chunks render independently."""
     u = t / max(n_frames - 1, 1)
-    T_wh = _hand_transform(plan, u)
-    hand_pose = hm.blend_pose(plan.open_pose, plan.grasp_pose, _phase(u, CLOSE_START, CLOSE_END))
+    m = STILL_AT if plan.still else u  # where the hand and object are in the script
+    T_wh = _hand_transform(plan, m)
+    hand_pose = hm.blend_pose(plan.open_pose, plan.grasp_pose, _phase(m, CLOSE_START, CLOSE_END))
     T_wo = plan.world_from_object0.copy()
-    T_wo[:3, 3] += _lift_offset(plan, u)
+    T_wo[:3, 3] += _lift_offset(plan, m)
 
     sway = plan.sway_amp * np.sin(2 * np.pi * plan.sway_freq * u + plan.sway_phase)
-    follow = np.array([0.0, 0.0, 0.5]) * _lift_offset(plan, u)[2]
+    follow = np.array([0.0, 0.0, 0.5]) * _lift_offset(plan, m)[2]
     T_wc = look_at(plan.eye + sway, plan.target + 0.6 * sway[[1, 2, 0]] + follow)
 
     wobble = Rotation.from_euler("xy", 0.08 * np.sin(2 * np.pi * 0.7 * u + plan.light_phase + np.array([0, 1]))).as_matrix()
@@ -664,7 +669,9 @@ class SyntheticSource:
 
     @property
     def fingerprint(self) -> str:
-        return hashlib.sha256((self.spec.model_dump_json() + GENERATOR_VERSION).encode()).hexdigest()
+        # a moving clip's fingerprint leaves ``still`` out: the clips made before it existed keep theirs
+        dump = self.spec.model_dump_json(exclude=None if self.spec.still else {"still"})
+        return hashlib.sha256((dump + GENERATOR_VERSION).encode()).hexdigest()
 
     def info(self) -> ClipInfo:
         s = self.spec

@@ -37,7 +37,7 @@ from handedit.vision.skin import colour_loglik
 
 
 class CompositeConfig(pydantic.BaseModel):
-    VERSION: ClassVar[int] = 3  # 2: one blend (cv2.blendLinear, round-to-nearest), object depth only in the robot's window; 3: off-arm check
+    VERSION: ClassVar[int] = 4  # 2: one blend (cv2.blendLinear, round-to-nearest), object depth only in the robot's window; 3: off-arm check; 4: residue
     model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
 
     method: Literal["classical"] = "classical"
@@ -48,6 +48,9 @@ class CompositeConfig(pydantic.BaseModel):
     min_visible_px: int = pydantic.Field(1, ge=1)  # fewer visible robot pixels -> EMPTY_RENDER
     paste_dilate_px: int = pydantic.Field(6, ge=0)  # a kept human hand comes back over its mask grown by this
     residue_threshold: float = pydantic.Field(0.05, description="share of finger samples visible as human -> HUMAN_VISIBLE")
+    restored_residue_threshold: float = pydantic.Field(
+        0.25, ge=0, le=1, description="skin-coloured share of the restored pixels left visible (above their surroundings' "
+        "share) -> RESIDUE (restoration's check, judged where no robot covers the hole)")
     max_off_arm: float = pydantic.Field(0.35, ge=0, le=1, description="hand-arm: share of a robot's pixels outside the "
                                         "human arm's corridor (handedit.vision.arm) above which -> OFF_ARM")
     arm_corridor_frac: float = pydantic.Field(0.05, ge=0, description="the corridor grows by this share of the image width")

@@ -41,7 +41,7 @@ from handedit.vision.skin import prior_rule, to_ycrcb
 
 
 class RestoreConfig(pydantic.BaseModel):
-    VERSION: ClassVar[int] = 5  # 5: alignment checked every 4th pixel (the same sources kept on the demo and EgoDex clips)
+    VERSION: ClassVar[int] = 6  # 5: alignment checked every 4th pixel; 6: residue judged after compositing (the hole stored)
     model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
 
     method: Literal["classical", "onnx"] = "classical"
@@ -68,6 +68,9 @@ class RestoreConfig(pydantic.BaseModel):
     inpaint_full_scale_px: int = pydantic.Field(4096, ge=0, description="fills up to this many pixels stay at full scale (a "
                                                 "few ms; their edge detail is most of them)")
     residue_threshold: float = 0.25  # skin-coloured fraction of the restored region (above the ring's) -> RESIDUE
+    residue_after_composite: bool = pydantic.Field(
+        True, description="leave RESIDUE to composite, which judges only the restored pixels a robot leaves visible (a "
+        "hand that barely moves is never seen behind, but its robot covers most of the hole); False: judge it here")
     ghost_threshold: float = pydantic.Field(20.0, gt=0)  # median |grey diff| vs the best adjacent frame -> GHOSTING
     ghost_min_overlap: float = pydantic.Field(0.2, ge=0, le=1)  # fraction of the hole a neighbour must see to judge
 
@@ -84,6 +87,7 @@ class RestoreResult:
     status: np.ndarray  # (n,) int16 Reason
     filled_from_video: np.ndarray  # (n,) float32 fraction of hole pixels propagated (0 when no hole)
     method: str
+    hole: np.ndarray | None = None  # (n,H,W) bool: the restored pixels (composite judges residue on them)
 
 
 def _dilate(mask: np.ndarray, px: int) -> np.ndarray:
@@ -359,8 +363,10 @@ def _inpainted(img: np.ndarray, hole: np.ndarray, cfg: RestoreConfig) -> np.ndar
     return out[hole][:, ::-1]  # BGR -> RGB
 
 
-def _residue(img: np.ndarray, hole: np.ndarray, thr: float) -> bool:
-    """Skin-coloured pixels left in the restored region, beyond what its surroundings show."""
+def _residue(img: np.ndarray, hole: np.ndarray, thr: float, visible: np.ndarray | None = None) -> bool:
+    """Skin-coloured pixels left in the restored region, beyond what its surroundings show;
+    with ``visible``, only the restored pixels that stay visible count, still as a share of the
+    whole region (covering residue can only pass a frame, never reject one)."""
     win = bbox(hole, 15)  # the hole and its ring
     if win is None:
         return False
@@ -368,14 +374,22 @@ def _residue(img: np.ndarray, hole: np.ndarray, thr: float) -> bool:
     skin = prior_rule(to_ycrcb(np.ascontiguousarray(img)))
     ring = _dilate(hole, 15) & ~hole
     ring_rate = float(skin[ring].mean()) if ring.any() else 0.0
-    return float(skin[hole].mean()) > thr + ring_rate
+    seen = skin & hole if visible is None else skin & hole & visible[win]
+    return float(seen.sum()) / float(hole.sum()) > thr + ring_rate
+
+
+def visible_residue(background: np.ndarray, hole: np.ndarray, covered: np.ndarray, thr: float) -> np.ndarray:
+    """(n,) whether the restored pixels (``hole`` (n,H,W)) that the composite leaves visible
+    (not ``covered`` (n,H,W): a robot, or a human hand pasted back) show skin-coloured residue
+    beyond what the hole's surroundings show: the paper's residue check, where it matters."""
+    return np.array([bool(h.any()) and _residue(b, h, thr, ~c) for b, h, c in zip(background, hole, covered)], bool)
 
 
 def _checks(img, hole, t, frames, holes, ok, feats, cfg: RestoreConfig) -> Reason:
-    """The restored frame's automatic QC: residue first, then ghosting."""
+    """The restored frame's automatic QC: residue first (unless composite judges it), then ghosting."""
     if not hole.any():
         return Reason.OK
-    if _residue(img, hole, cfg.residue_threshold):
+    if not cfg.residue_after_composite and _residue(img, hole, cfg.residue_threshold):
         return Reason.RESIDUE
     ghost = _ghosting(img, hole, t, frames, holes, ok, feats, cfg)
     if ghost is not None and ghost > cfg.ghost_threshold:
@@ -454,7 +468,7 @@ def restore_background(
         status = np.full(n, Reason.OK, STATUS_DTYPE)
         for k, t in enumerate(targets):
             status[k] = _checks(out[k], holes[t], int(t), frames, holes, ok, feats, cfg)
-        return RestoreResult(out, status, np.zeros(n, np.float32), tag)
+        return RestoreResult(out, status, np.zeros(n, np.float32), tag, np.stack([holes[t] for t in targets]))
     out = np.empty((n, H, W, 3), np.uint8)  # every target's frame is written whole
     status = np.full(n, Reason.OK, STATUS_DTYPE)
     filled_frac = np.zeros(n, np.float32)
@@ -520,4 +534,5 @@ def restore_background(
         status[k] = _checks(img, hole, int(t), frames, holes, ok, feats, cfg)
     inp = {"telea": "telea", "ns": "ns", "fsr_fast": "xphoto-fsr", "shiftmap": "xphoto-shiftmap"}[cfg.inpaint]
     align = "homography" if cfg.align == "homography" else "identity"
-    return RestoreResult(out, status, filled_frac, f"classical:propagate-{align}+inpaint-{inp}")
+    return RestoreResult(out, status, filled_frac, f"classical:propagate-{align}+inpaint-{inp}",
+                         np.stack([holes[t] for t in targets]))
