@@ -185,9 +185,9 @@ def release(cfg: ReleaseConfig) -> dict:
     changes = changelog(parent_pairs, table)
     if parent and not cfg.publish_unchanged and not jobs and not any(changes[k] for k in ("added", "removed", "changed")) \
             and set(used) == set(reusable):
-        logger.info("nothing changed since %s (the same %d pairs in the same %d shards): no version published",
-                    parent, len(table), len(used))
-        return {**parent_manifest, "published": False}
+        note = f"nothing changed since {parent} (the same {len(table)} pairs in the same {len(used)} shards): no version published"
+        logger.info(note)
+        return {**parent_manifest, "published": False, "note": note}
     version = next_version(loc)
     sheet = datasheet.build(table, _status(curated), _ledger(curated),
                             sorted(set(table["embodiment"])) if len(table) else [])
