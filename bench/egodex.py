@@ -102,7 +102,7 @@ def arm_report(root) -> dict:
             continue
         intr = Intrinsics(**ing.attrs["info"]["intrinsics"])
         kp, arm, arm_ok = reg["keypoints"][:], reg["arm_keypoints"][:], ing["arm_valid"][:]
-        hs, handarm = reg["hand_status"][:], seg["handarm_mask"]
+        hs, handarm = reg["hand_status"][:], seg["handarm_mask"][:]  # read once: every side and embodiment uses it
         shape = (intr.height, intr.width)
         for k, side in enumerate(ing.attrs["hands"]):
             inside = total = 0
@@ -127,8 +127,7 @@ def arm_report(root) -> dict:
                 continue
             qc = root[Unit("qc", c, embodiment=emb).path]
             kept = (qc["status"][:] == Reason.OK)[:, None] & (qc["hand_status"][:] == Reason.OK)
-            unit = Unit("composite", c, embodiment=emb)
-            shares = off_arm_shares(root[unit.path]["robot_mask"][:], handarm[:], L, intr, kept)
+            shares = off_arm_shares(root[comp.path]["robot_mask"][:], handarm, L, intr, kept)
             out["off_arm"][(c, emb)] = (int((shares > 0.25).sum()), int(kept.sum()))
     return out
 
@@ -175,13 +174,14 @@ def main() -> None:
         from handedit.storage.summary import run_summary
 
         root = open_store(args.store)
-        for u in run_summary(root)["units"]:
+        units = run_summary(root)["units"]
+        for u in units:
             print(f"  {u['clip']:<34} {u['embodiment']:<14} {str(u['side']):<6} {u['kept']:>4}/{u['frames']:<4} "
                   f"{u['kept'] / max(u['frames'], 1):6.2f}")
         print_arm_report(arm_report(root))
         if args.figure:
             clips = sorted(root["clips"].group_keys())
-            embs = args.embodiment or sorted({u["embodiment"] for u in run_summary(root)["units"] if u["embodiment"]})
+            embs = args.embodiment or sorted({u["embodiment"] for u in units if u["embodiment"]})
             figures(root, clips, embs, Path(args.figure))
         return
     os.environ.setdefault("HANDEDIT_ASSET_DIRS", str(REPO.parent / "shared" / "assets" / "robots"))

@@ -23,7 +23,6 @@ from handedit.tasks.common import ChunkJob, StageOutput, execute
 from handedit.vision.composite import CompositeConfig, composite as composite_frames, robot_windows
 from handedit.vision.arm import limbs, off_arm_shares, off_arm_status
 from handedit.vision.object_depth import object_occluder
-from handedit.vision.restore_background import visible_residue
 
 
 def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
@@ -46,15 +45,12 @@ def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     robot_depth = None if occluder_depth is None else read_chunk(root, Unit("render", clip, embodiment=emb), ["depth"], a, b)["depth"]
     ready = gate(bg["status"], ren["status"])
     replace = ready[:, None] & (ren["hand_status"] == Reason.OK)
-    # residue, where it stays visible: not under a robot, not under a hand pasted back (before compositing in place)
-    covered = (ren["rgba"][..., 3] > 0) | (seg[SCOPE_MASK[scope]] & ~replace[:, :, None, None]).any(axis=1)
-    residue = visible_residue(bg["background"], bg["hole"], covered, cfg.restored_residue_threshold) & ready
     result = composite_frames(bg["background"], ren["rgba"], robot_depth, occluder, occluder_depth, cfg,
                               robot_side=ren["robot_side"], replace=replace, source=src["frames"], human_mask=seg[SCOPE_MASK[scope]],
                               keypoints_2d=project(reg["keypoints"], intr), keypoints_valid=reg["keypoints_valid"], windows=windows,
-                              out=writable(bg["background"]))  # read for this chunk only: composited in place
-    own = np.where(residue[:, None] & (result.hand_status == Reason.OK), Reason.RESIDUE, result.hand_status)
-    extra = {"residue_max": _side_max(result.residue), "restore_residue_frames": int(residue.sum())}
+                              out=writable(bg["background"]), hole=bg["hole"])  # read for this chunk only: composited in place
+    own = result.hand_status
+    extra = {"residue_max": _side_max(result.residue), "restore_residue_frames": int(result.restored_residue.sum())}
     if scope == "hand_arm":  # base plausibility: the robot arm where the human arm was
         limbs_3d = limbs(reg["keypoints"], reg["arm_keypoints"], src["arm_valid"]) if tracked_arm else None
         checked = replace & (own == Reason.OK)

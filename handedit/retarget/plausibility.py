@@ -18,13 +18,13 @@ Where the source does not track the arm, the human forearm is continued from the
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from handedit.camera import Intrinsics
 from handedit.keypoints import JOINT_INDEX, WRIST
-from handedit.vision.arm import CORRIDOR_FRAC, FOREARM_RADIUS_M, capsule, corridor, outside_share, tracked
+from handedit.vision.arm import CORRIDOR_FRAC, FOREARM_RADIUS_M, capsule, corridor, limbs, outside_share, tracked
 
 FOREARM_HINT_M = 0.25  # a forearm's length: the hinted forearm runs this far back from the wrist
 FOOTPRINT_WIDTH = 160  # the footprint is measured on an image this many pixels wide (a share, not a mask)
@@ -42,6 +42,13 @@ class BaseView:
     intr: Intrinsics
     limbs: np.ndarray
     tracked_arm: bool
+    _corridors: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def corridor(self, i: int) -> np.ndarray:
+        """Frame ``i``'s human arm corridor (``human_corridor``), made once: every candidate reads it."""
+        if i not in self._corridors:
+            self._corridors[i] = human_corridor(self.limbs[i], self)
+        return self._corridors[i]
 
 
 def human_limbs(keypoints: np.ndarray, arm_keypoints: np.ndarray | None = None,
@@ -57,28 +64,39 @@ def human_limbs(keypoints: np.ndarray, arm_keypoints: np.ndarray | None = None,
         hint = wrist + FOREARM_HINT_M * axis / norm
     if arm_keypoints is None or arm_valid is None or not np.asarray(arm_valid, bool)[:, 0].any():
         return np.stack([palm, wrist, hint], axis=1), False
-    arm = np.asarray(arm_keypoints, float)[:, :2].copy()  # elbow, shoulder
-    ok = np.cumprod(np.asarray(arm_valid, bool)[:, :2], axis=1).astype(bool)
-    arm[~ok] = np.nan
-    elbow_missing = ~ok[:, 0]
-    arm[elbow_missing, 0] = hint[elbow_missing]  # no elbow in a frame: the hint stands in
-    return np.concatenate([palm[:, None], wrist[:, None], arm], axis=1), True
+    line = limbs(kp, np.asarray(arm_keypoints)[:, :2], np.asarray(arm_valid)[:, :2])  # wrist, elbow, shoulder
+    no_elbow = ~np.isfinite(line[:, 1]).all(-1)
+    line[no_elbow, 1] = hint[no_elbow]  # no elbow in a frame: the hint stands in (and no shoulder)
+    return np.concatenate([palm[:, None], line], axis=1), True
+
+
+def _footprint_camera(view: BaseView) -> tuple[Intrinsics, tuple[int, int]]:
+    """The camera and shape of the small image the footprint is measured on."""
+    w = FOOTPRINT_WIDTH
+    h = max(1, int(round(view.intr.height * w / view.intr.width)))
+    return view.intr.scaled(w, h), (h, w)
+
+
+def human_corridor(limb_cam: np.ndarray, view: BaseView, frac: float = CORRIDOR_FRAC) -> np.ndarray:
+    """Where a robot arm may appear on the footprint image: the human arm's capsule (``limb_cam``,
+    camera frame, as far as it is tracked) grown by ``frac`` of the image width."""
+    intr, shape = _footprint_camera(view)
+    line = tracked(limb_cam)
+    human = capsule(line, intr, FOREARM_RADIUS_M, shape) if len(line) >= 2 else np.zeros(shape, bool)
+    return corridor(human, None, frac)
 
 
 def footprint_outside(robot_cam: np.ndarray, limb_cam: np.ndarray, view: BaseView, link_radius: float,
-                      frac: float = CORRIDOR_FRAC) -> float:
+                      frac: float = CORRIDOR_FRAC, corridor_mask: np.ndarray | None = None) -> float:
     """Share of the robot arm's footprint (capsules of ``link_radius`` around the polyline
-    ``robot_cam``, camera frame) outside the human arm's corridor (``limb_cam``); NaN when the
-    robot is not in view."""
-    w = FOOTPRINT_WIDTH
-    h = max(1, int(round(view.intr.height * w / view.intr.width)))
-    intr = view.intr.scaled(w, h)
-    robot = capsule(robot_cam, intr, link_radius, (h, w))
+    ``robot_cam``, camera frame) outside the human arm's corridor (``limb_cam``, or its
+    ``corridor_mask`` when the caller has it: ``BaseView.corridor``); NaN when the robot is
+    not in view."""
+    intr, shape = _footprint_camera(view)
+    robot = capsule(robot_cam, intr, link_radius, shape)
     if not robot.any():
         return float("nan")
-    line = tracked(limb_cam)
-    human = capsule(line, intr, FOREARM_RADIUS_M, (h, w)) if len(line) >= 2 else np.zeros((h, w), bool)
-    return outside_share(robot, corridor(human, None, frac))
+    return outside_share(robot, human_corridor(limb_cam, view, frac) if corridor_mask is None else corridor_mask)
 
 
 def forearm_angle(robot_cam: np.ndarray, limb_cam: np.ndarray) -> float:

@@ -443,7 +443,7 @@ def _plausibility(score: CandidateScore, track: _Track, arm: ArmModel, cameras: 
     for i in frames:
         cam_from = np.linalg.inv(cameras[i])
         pts = (cam_from[:3, :3] @ track.chains[i][:, first:] + cam_from[:3, 3:4]).T
-        offs.append(footprint_outside(pts, view.limbs[i], view, cfg.link_radius))
+        offs.append(footprint_outside(pts, view.limbs[i], view, cfg.link_radius, corridor_mask=view.corridor(int(i))))
         angles.append(forearm_angle(pts[1:-1], view.limbs[i]))  # from the shoulder to the wrist (not the palm centre)
     score.off_corridor = float(np.nanmean(offs)) if np.isfinite(offs).any() else float("nan")
     score.forearm_deg = float(np.nanmean(angles)) if np.isfinite(angles).any() else float("nan")

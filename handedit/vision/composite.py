@@ -33,6 +33,7 @@ from handedit.keypoints import N_JOINTS, PARENT, WRIST
 from handedit.reasons import STATUS_DTYPE, Reason, per_frame
 from handedit.metrics.similarity import bbox
 from handedit.vision.masks import disk, grow
+from handedit.vision.restore_background import restored_residue
 from handedit.vision.skin import colour_loglik
 
 
@@ -64,6 +65,7 @@ class CompositeResult:
     status: np.ndarray  # (n,) int16 Reason
     method: str
     residue: np.ndarray | None = None  # (n,S) float32: the residue statistic (nan where not measured)
+    restored_residue: np.ndarray | None = None  # (n,) bool: skin left in the restored pixels no robot covers (RESIDUE)
 
     @property
     def union(self) -> np.ndarray:
@@ -190,6 +192,7 @@ def composite(
     keypoints_valid: np.ndarray | None = None,
     windows: list[tuple[slice, slice] | None] | None = None,
     out: np.ndarray | None = None,
+    hole: np.ndarray | None = None,
 ) -> CompositeResult:
     """Alpha-composite robot renders over backgrounds (arrays per frame along axis 0).
 
@@ -202,6 +205,8 @@ def composite(
     and ``keypoints_valid`` (n,S,21): the registered joints, for the residue check.
     ``windows``: ``robot_windows(rgba, cfg)`` when the caller has them already. ``out``: where
     the composites go (may be ``background`` itself, which is then overwritten: no copy).
+    ``hole`` (n,H,W): the pixels restoration filled; its skin-coloured residue is judged on
+    the part no robot (rendered alpha) and no pasted-back hand covers (``RESIDUE``).
     """
     if cfg.method != "classical":
         raise ValueError(f"composite: unknown method {cfg.method!r}; this build has 'classical'")
@@ -219,9 +224,15 @@ def composite(
     robot_mask = np.zeros((n, S, H, W), bool)
     hs = np.where(replace, Reason.OK, Reason.UPSTREAM).astype(STATUS_DTYPE)
     residue = np.full((n, S), np.nan, np.float32)
+    restored = np.zeros(n, bool)
     windows = robot_windows(rgba, cfg) if windows is None else windows
     for i in range(n):
         bg = background[i]
+        if hole is not None and replace[i].any() and hole[i].any():  # judged before ``out`` overwrites it
+            covered = rgba[i, ..., 3] > 0
+            if human_mask is not None:
+                covered = covered | human_mask[i, ~replace[i]].any(axis=0)
+            restored[i] = restored_residue(bg, hole[i], cfg.restored_residue_threshold, ~covered)
         if human_mask is not None and source is not None and (~replace[i]).any():
             keep = np.zeros((H, W), bool)
             for k in np.flatnonzero(~replace[i]):
@@ -268,5 +279,7 @@ def composite(
                 residue[i, k] = human_residue(img, source[i], human_mask[i, k], visible, keypoints_2d[i, k], keypoints_valid[i, k])
                 if residue[i, k] > cfg.residue_threshold:
                     hs[i, k] = Reason.HUMAN_VISIBLE
+        if restored[i]:
+            hs[i][(hs[i] == Reason.OK) & replace[i]] = Reason.RESIDUE
     method = "classical:alpha-over+depth-occlusion" + ("+paste-back+residue" if human_mask is not None else "")
-    return CompositeResult(image, robot_mask, hs, per_frame(hs), method, residue)
+    return CompositeResult(image, robot_mask, hs, per_frame(hs), method, residue, restored if hole is not None else None)

@@ -363,7 +363,7 @@ def _inpainted(img: np.ndarray, hole: np.ndarray, cfg: RestoreConfig) -> np.ndar
     return out[hole][:, ::-1]  # BGR -> RGB
 
 
-def _residue(img: np.ndarray, hole: np.ndarray, thr: float, visible: np.ndarray | None = None) -> bool:
+def restored_residue(img: np.ndarray, hole: np.ndarray, thr: float, visible: np.ndarray | None = None) -> bool:
     """Skin-coloured pixels left in the restored region, beyond what its surroundings show;
     with ``visible``, only the restored pixels that stay visible count, still as a share of the
     whole region (covering residue can only pass a frame, never reject one)."""
@@ -382,14 +382,14 @@ def visible_residue(background: np.ndarray, hole: np.ndarray, covered: np.ndarra
     """(n,) whether the restored pixels (``hole`` (n,H,W)) that the composite leaves visible
     (not ``covered`` (n,H,W): a robot, or a human hand pasted back) show skin-coloured residue
     beyond what the hole's surroundings show: the paper's residue check, where it matters."""
-    return np.array([bool(h.any()) and _residue(b, h, thr, ~c) for b, h, c in zip(background, hole, covered)], bool)
+    return np.array([bool(h.any()) and restored_residue(b, h, thr, ~c) for b, h, c in zip(background, hole, covered)], bool)
 
 
 def _checks(img, hole, t, frames, holes, ok, feats, cfg: RestoreConfig) -> Reason:
     """The restored frame's automatic QC: residue first (unless composite judges it), then ghosting."""
     if not hole.any():
         return Reason.OK
-    if not cfg.residue_after_composite and _residue(img, hole, cfg.residue_threshold):
+    if not cfg.residue_after_composite and restored_residue(img, hole, cfg.residue_threshold):
         return Reason.RESIDUE
     ghost = _ghosting(img, hole, t, frames, holes, ok, feats, cfg)
     if ghost is not None and ghost > cfg.ghost_threshold:
@@ -468,7 +468,7 @@ def restore_background(
         status = np.full(n, Reason.OK, STATUS_DTYPE)
         for k, t in enumerate(targets):
             status[k] = _checks(out[k], holes[t], int(t), frames, holes, ok, feats, cfg)
-        return RestoreResult(out, status, np.zeros(n, np.float32), tag, np.stack([holes[t] for t in targets]))
+        return RestoreResult(out, status, np.zeros(n, np.float32), tag, _target_holes(holes, targets))
     out = np.empty((n, H, W, 3), np.uint8)  # every target's frame is written whole
     status = np.full(n, Reason.OK, STATUS_DTYPE)
     filled_frac = np.zeros(n, np.float32)
@@ -535,4 +535,9 @@ def restore_background(
     inp = {"telea": "telea", "ns": "ns", "fsr_fast": "xphoto-fsr", "shiftmap": "xphoto-shiftmap"}[cfg.inpaint]
     align = "homography" if cfg.align == "homography" else "identity"
     return RestoreResult(out, status, filled_frac, f"classical:propagate-{align}+inpaint-{inp}",
-                         np.stack([holes[t] for t in targets]))
+                         _target_holes(holes, targets))
+
+
+def _target_holes(holes: Sequence[np.ndarray], targets: np.ndarray) -> np.ndarray:
+    """(n,H,W) the restored pixels of each target frame (stored: composite judges residue on them)."""
+    return np.stack([holes[t] for t in targets])
