@@ -98,14 +98,21 @@ def simulate_plan(tree: SimulatedTree, n_embodiments: int, shard_size: int, fram
 def round1(n_clips: int, n_embodiments: int, frames: int, frames_per_chunk: int, sample: int = 20) -> dict:
     """Round 1's design on the same input: build_nodes for every clip up front (timed on a
     sample, extrapolated), one Prefect task per node, a root registry of every clip."""
-    from handedit.flows.dag import ClipPlan, build_nodes
     from handedit.embodiments.roster import list_embodiments
+    from handedit.flows.config import CurateConfig
+    from handedit.tasks.clip import WalkConfig, clip_nodes, embodiment_nodes
+    from handedit.tasks.plan import ClipPlan
+    from handedit.tasks.stage import Robot
 
     embs = {e.id: e.track for e in list_embodiments()[:n_embodiments]}
     plan = ClipPlan("c", frames, 1080, 1920, {"fx": 1.0}, "{}", "fp", False, False, hands=("left", "right"))
+    cfg = WalkConfig.from_json(CurateConfig(out="x", frames_per_chunk=frames_per_chunk,
+                                            restore_background={"window": 12}).model_dump_json())
     t0 = time.perf_counter()
     for _ in range(sample):
-        nodes = build_nodes(plan, embs, frames_per_chunk, 12)
+        nodes = clip_nodes(plan, embs.values(), cfg)
+        for emb, track in embs.items():
+            nodes += embodiment_nodes(plan, Robot(emb, track), cfg)
     per_clip = (time.perf_counter() - t0) / sample
     registry_entry = len(json.dumps({"egodex-task000-1234": {"source": {"kind": "egodex", "root": "/data/egodex",
                                      "task": "task000", "episode": "1234"}, "n_frames": frames, "fingerprint": "f" * 64}}))

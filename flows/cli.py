@@ -187,6 +187,10 @@ def print_summary(summary: dict) -> None:
         print(f"  {key:<40} {n:>6}")
     for clip, err in summary.get("clip_errors", {}).items():
         print(f"  clip {clip} not ingested: {err}")
+    if summary.get("recomputed"):
+        print("\nrecomputed (an input changed; chunks):")
+        for why, n in sorted(summary["recomputed"].items()):
+            print(f"  {why:<60} {n:>5}")
     if summary.get("recovered"):
         print(f"\nrecomputed {len(summary['recovered'])} chunk(s) whose stored data was missing or corrupt (first 10):")
         for note in summary["recovered"][:10]:

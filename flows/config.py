@@ -20,17 +20,13 @@ from handedit.qc import QCConfig
 from handedit.render.stage import RenderConfig
 from handedit.retarget import RetargetConfig
 from handedit.sources import SourceSpec, TreeSpec
+from handedit.tasks.ingest import IngestConfig
 from handedit.vision.registration import RegistrationConfig
 from handedit.vision.composite import CompositeConfig
 from handedit.vision.estimate_hands import EstimateHandsConfig
 from handedit.vision.harmonize import HarmonizeConfig
 from handedit.vision.restore_background import RestoreConfig
 from handedit.vision.segment import SegmentConfig
-
-
-class IngestConfig(BaseModel):
-    VERSION: ClassVar[int] = 2  # 2: the object's depth (from the source's mesh and pose)
-    model_config = ConfigDict(frozen=True, extra="forbid")
 
 
 class PreflightError(ValueError):

@@ -19,6 +19,7 @@ shard with failures stays incomplete, so the next run retries exactly what faile
 from __future__ import annotations
 
 import contextvars
+from collections import Counter
 import json
 import os
 import subprocess
@@ -33,7 +34,7 @@ from prefect import flow, get_run_logger
 from tqdm import tqdm
 
 import handedit
-from handedit.digests import file_digest, model_digests as stage_model_digests
+from handedit.digests import model_digests as stage_model_digests, robot_digest
 from handedit.embodiments import EmbodimentError, describe_embodiment, get_embodiment, resolve_urdf
 from handedit.flows.api import run_url
 from handedit.flows.config import CurateConfig, PreflightError, dashboard_link
@@ -48,6 +49,7 @@ from handedit.storage.shards import (INDEX, LEDGER, is_complete, new_holder, rea
 from handedit.storage.store import CorruptChunk, jsonable, now_iso
 from handedit.storage.summary import index_rows
 from handedit.tasks.clip import ClipJob, EmbodimentJob, curate_clip, curate_embodiment, stage_version_params
+from handedit.tasks import STAGES as STAGE_DECLARATIONS
 
 
 
@@ -69,7 +71,7 @@ class EmbodimentPlan:
     joint_names: list[str]
     error: str | None = None
     reason: int = int(Reason.OK)
-    urdf_digest: str = ""  # content of the resolved (or composed) URDF
+    robot_digest: str = ""  # content of the resolved (or composed) URDF and of every mesh it names
 
 
 def plan_embodiments(ids: list[str]) -> list[EmbodimentPlan]:
@@ -80,8 +82,8 @@ def plan_embodiments(ids: list[str]) -> list[EmbodimentPlan]:
         track = get_embodiment(emb_id).track
         try:
             _, joints = describe_embodiment(emb_id)
-            urdf = file_digest(resolve_urdf(get_embodiment(emb_id)))
-            plans.append(EmbodimentPlan(emb_id, track, joints, urdf_digest=urdf))
+            robot = robot_digest(resolve_urdf(get_embodiment(emb_id)))
+            plans.append(EmbodimentPlan(emb_id, track, joints, robot_digest=robot))
         except EmbodimentError as exc:
             plans.append(EmbodimentPlan(emb_id, track, [], f"{type(exc).__name__}: {exc}", int(exc.reason)))
     return plans
@@ -98,8 +100,9 @@ def model_digests(config: CurateConfig) -> dict[str, str]:
 
 def the_run_key(config: CurateConfig, embs: list[EmbodimentPlan]) -> str:
     params = {s: stage_version_params(config, s) for s in STAGES}
-    return run_key(config.frames_per_chunk, {"params": params, "models": model_digests(config)},
-                   [{"id": e.id, "scope": e.scope, "urdf": e.urdf_digest, "error": e.error} for e in embs], SCHEMA_VERSION)
+    versions = {s.name: s.versions(config.stage_config(s.name)) for s in STAGE_DECLARATIONS}
+    return run_key(config.frames_per_chunk, {"params": params, "versions": versions, "models": model_digests(config)},
+                   [{"id": e.id, "scope": e.scope, "robot": e.robot_digest, "error": e.error} for e in embs], SCHEMA_VERSION)
 
 
 # ----------------------------------------------------------------------------- one shard
@@ -133,7 +136,7 @@ def curate_shard(config_json: str, shard_id: str, specs_json: list[str], embodim
                 emb_futures.append(curate_embodiment.submit(EmbodimentJob(loc.store_url, clip_id, emb, config_json, code),
                                                             emb_id=emb["id"], wait_for=[fc]))
     stages: dict = {}
-    errors, source_errors, task_failures, recovered = [], {}, [], []
+    errors, source_errors, task_failures, recovered, recomputed = [], {}, [], [], Counter()
     for fut in [*clip_futures, *emb_futures]:
         try:
             res = fut.result(raise_on_failure=False)
@@ -145,6 +148,7 @@ def curate_shard(config_json: str, shard_id: str, specs_json: list[str], embodim
         _merge(stages, res["stages"])
         errors += res["errors"]
         recovered += res.get("recovered", [])
+        recomputed.update(res.get("recomputed", {}))
         if res.get("source_error") and res["clip"] not in source_errors and "could not be ingested" not in res["source_error"]:
             source_errors[res["clip"]] = res["source_error"]
     root = open_store(loc)
@@ -164,7 +168,7 @@ def curate_shard(config_json: str, shard_id: str, specs_json: list[str], embodim
     complete = not task_failures and not errors
     log = {"run": run_id, "shard": shard_id, "started": started, "finished": now_iso(), "stages": stages,
            "errors": errors[:50], "task_failures": task_failures, "clip_errors": source_errors, "complete": complete,
-           "recovered": recovered}
+           "recovered": recovered, "recomputed": dict(recomputed)}
     write_run_log(loc, shard_id, run_id, log)
     write_manifest(loc, shard_id, {"shard": shard_id, "clips": clips, "digest": digest, "complete": complete,
                                    "embodiments": embodiments, "updated": now_iso(), "run": run_id, "stages": stages,
@@ -271,7 +275,7 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
     config_json = config.model_dump_json()
     summary = {"store": loc.store_url, "stages": {}, "errors": [], "clip_errors": {}, "run": holder,
                "shards": {"ran": 0, "skipped": 0, "held": 0, "incomplete": 0}, "held_by_others": {},
-               "recovered": []}
+               "recovered": [], "recomputed": {}}
     bar = tqdm(desc="curate", unit="shard", disable=not progress)
     with config.cluster.connect() as address:
         summary["dashboard"] = link = dashboard_link(address)
@@ -301,6 +305,8 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
                 summary["errors"] += log["errors"] + log["task_failures"]
                 summary["clip_errors"].update(log["clip_errors"])
                 summary["recovered"] += log.get("recovered", [])
+                for why, n in log.get("recomputed", {}).items():
+                    summary["recomputed"][why] = summary["recomputed"].get(why, 0) + n
                 summary["shards"]["ran"] += 1
                 summary["shards"]["incomplete"] += 0 if log["complete"] else 1
                 bar.update()

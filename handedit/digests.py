@@ -10,14 +10,14 @@ _BLOCK = 1 << 20
 
 
 def file_sha256(path: str | Path) -> str:
-    """sha256 of a file's bytes, cached per process by (path, size, mtime): a file rewritten
-    in place is hashed again, an unchanged one once."""
+    """sha256 of a file's bytes, cached per process by (path, inode, size, mtime, ctime): a
+    file rewritten or replaced in place is hashed again, an unchanged one once."""
     st = Path(path).stat()
-    return _sha256(str(path), st.st_size, st.st_mtime_ns)
+    return _sha256(str(path), st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
 
 
-@lru_cache(maxsize=256)
-def _sha256(path: str, size: int, mtime_ns: int) -> str:
+@lru_cache(maxsize=1024)
+def _sha256(path: str, ino: int, size: int, mtime_ns: int, ctime_ns: int) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
         while block := f.read(_BLOCK):
@@ -47,3 +47,23 @@ def model_digests(stage_config) -> dict[str, str]:
     if callable(own):
         out.update(own())
     return out
+
+
+def robot_digest(urdf_path: str | Path) -> str:
+    """The content of a robot: its URDF and every mesh file it names (visual and collision),
+    resolved the way the URDF loader resolves them. A mesh edited in place changes it, so
+    the stages that load the robot run again."""
+    import xml.etree.ElementTree as ET
+
+    import yourdfpy
+
+    urdf_path = Path(urdf_path)
+    h = hashlib.sha256(file_digest(urdf_path).encode())
+    try:
+        names = sorted({m.get("filename") for m in ET.parse(urdf_path).iter("mesh") if m.get("filename")})
+    except (OSError, ET.ParseError):
+        return h.hexdigest()  # the loader reports an unreadable URDF
+    for name in names:
+        resolved = yourdfpy.filename_handler_magic(name, dir=str(urdf_path.parent))
+        h.update(f"\n{name}={file_digest(resolved)}".encode())
+    return h.hexdigest()

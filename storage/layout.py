@@ -26,7 +26,8 @@ task and one writer own both.
 Chunking enforces one writer per chunk: a task always covers whole chunks of
 ``frames_per_chunk`` (F) frames. Image arrays store one frame per inner chunk, F frames
 per shard; small per-frame arrays store F frames per chunk. So two tasks never touch the
-same file, and only the flow driver creates/resizes arrays or writes attributes.
+same file, and a unit's arrays and attributes are created and written by the one task that
+owns it (a clip's task its clip units, an embodiment task its embodiment units).
 """
 
 from __future__ import annotations

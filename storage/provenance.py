@@ -1,4 +1,10 @@
-"""Provenance: one record per (unit, chunk), kept in the unit group's attributes.
+"""Provenance: one record per (unit, chunk), each its own small JSON file.
+
+Records lie beside the store, ``<store>.records/<unit path>/<chunk>.json`` (e.g.
+``runs/demo/handedit.zarr.records/clips/c/segment/3.json``): writing one chunk's record
+touches no other record, so its cost does not grow with the clip, and no two writers ever
+share a file. Stores written before kept a unit's records in its ``provenance``
+attribute; those are still read (a file wins), and dropping a record drops both.
 
 A record says what produced a chunk: stage name and version, parameters, fingerprints
 of the exact input arrays read, digests of the arrays written, code version, host,
@@ -10,13 +16,14 @@ digests of what a stage read, so a change propagates exactly as far as the data 
 changes: new harmonize parameters rewrite harmonize images, but QC, which reads only
 status codes, sees the same inputs and is skipped.
 
-The record is written after the data by the driver; it is the commit marker. A chunk
-whose task died half-way has no matching record and is recomputed.
+The record is written after the data by the walk that owns the unit; it is the commit
+marker. A chunk whose task died half-way has no matching record and is recomputed.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import socket
 from dataclasses import asdict, dataclass, field
@@ -68,29 +75,79 @@ class ChunkRecord:
         return cls(**known)
 
 
+def _records_dir(root: zarr.Group, unit: Unit):
+    from handedit.storage.location import location_of
+
+    loc = location_of(root)
+    return loc, f"{loc.store_name}.records/{unit.path}"
+
+
 def read_records(root: zarr.Group, unit: Unit) -> dict[int, ChunkRecord]:
     if unit.path not in root:
         return {}
-    raw = root[unit.path].attrs.get(PROVENANCE_ATTR) or {}
-    return {int(k): ChunkRecord.from_json(v) for k, v in raw.items()}
+    legacy = root[unit.path].attrs.get(PROVENANCE_ATTR) or {}
+    out = {int(k): ChunkRecord.from_json(v) for k, v in legacy.items()}
+    loc, folder = _records_dir(root, unit)
+    names = [n for n in loc.listdir(folder) if n.endswith(".json") and n[:-5].isdigit()]
+    if names:
+        paths = [loc.path(folder, n) for n in names]
+        for path, data in loc.fs.cat(paths, on_error="omit").items():
+            out[int(path.rsplit("/", 1)[1][:-5])] = ChunkRecord.from_json(json.loads(data))
+    return out
 
 
 def write_records(root: zarr.Group, unit: Unit, records: list[ChunkRecord]) -> None:
-    """Driver only: merge records into the unit's provenance attribute."""
-    group = root.require_group(unit.path)
-    current = dict(group.attrs.get(PROVENANCE_ATTR) or {})
+    """Write each record to its own file (whole, atomically): the unit's only writer calls this."""
+    loc, folder = _records_dir(root, unit)
     for rec in records:
-        current[str(rec.chunk)] = rec.to_json()
-    group.attrs.update({PROVENANCE_ATTR: current})
+        loc.write_bytes(f"{folder}/{rec.chunk}.json", dumps(rec.to_json()).encode())
 
 
-def drop_records(root: zarr.Group, unit: Unit, chunks) -> None:
-    """Forget chunks' records (``handedit verify --repair``): they count as never computed."""
-    group = root[unit.path]
-    current = dict(group.attrs.get(PROVENANCE_ATTR) or {})
+def drop_records(root: zarr.Group, unit: Unit, chunks=None) -> None:
+    """Forget chunks' records (all of the unit's when ``chunks`` is None; ``handedit verify
+    --repair``, a recreated unit): they count as never computed."""
+    loc, folder = _records_dir(root, unit)
+    everything = chunks is None
+    if everything:
+        chunks = [n[:-5] for n in loc.listdir(folder) if n.endswith(".json")]
     for k in chunks:
-        current.pop(str(k), None)
-    group.attrs.update({PROVENANCE_ATTR: current})
+        loc.remove(f"{folder}/{k}.json")
+    if unit.path in root:
+        group = root[unit.path]
+        legacy = dict(group.attrs.get(PROVENANCE_ATTR) or {})
+        if legacy:
+            group.attrs.update({PROVENANCE_ATTR: {} if everything else
+                                {k: v for k, v in legacy.items() if k not in {str(c) for c in chunks}}})
+
+
+def _input_label(name: str) -> str:
+    """What an input key names, for people: ``clips/c/source#0/frames`` -> ``ingest data``."""
+    from handedit.storage.layout import STAGE_LEVEL
+
+    if "#" in name:  # an array of a chunk: <unit path>#<chunk>/<array>
+        parts = name.split("#", 1)[0].split("/")
+        stage = "ingest" if parts[-1] == "source" else next((p for p in reversed(parts) if p in STAGE_LEVEL), parts[-1])
+        return f"{stage} output"
+    if "@" in name:  # an attribute: <unit path>@<name>
+        return name.rsplit("@", 1)[1]
+    return {"robot": "robot URDF or meshes", "clip": "clip facts", "versions": "config versions",
+            "source": "source content"}.get(name, name.replace("model:", "model file ").replace("setting:", "setting "))
+
+
+def changed_inputs(old: dict, version: int, params: dict, inputs: dict[str, str]) -> str:
+    """Why a stored chunk's key no longer matches: what changed, in words."""
+    why = []
+    if old.get("version") != version:
+        why.append(f"version {old.get('version')} -> {version}")
+    if dumps(old.get("params") or {}) != dumps(params):
+        names = sorted(k for k in {*(old.get("params") or {}), *params} if (old.get("params") or {}).get(k) != params.get(k))
+        why.append("parameters " + ", ".join(names))
+    before = old.get("inputs") or {}
+    labels = sorted({_input_label(k) for k in {*before, *inputs} if before.get(k) != inputs.get(k)})
+    why += [f"{label} changed" for label in labels]
+    if old.get("outcome") not in (None, "ok") and not why:
+        return "failed before"
+    return "; ".join(why) or "key scheme changed"
 
 
 def is_current(record: ChunkRecord | dict | None, key: str) -> bool:

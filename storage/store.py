@@ -1,9 +1,12 @@
-"""Opening the store, creating unit arrays (driver only), chunk reads and writes (tasks).
+"""Opening the store, creating unit arrays, chunk reads and writes.
 
 Concurrency contract (measured on this stack: two writers in one chunk, or concurrent
 attribute updates, silently lose data):
-- ``create_unit`` / ``set_attrs`` / provenance writes: the flow driver only.
-- ``write_chunk``: a task, for whole chunks it owns (see ``storage.layout``).
+- ``create_or_open_store`` and the root's attributes: the flow driver only.
+- ``create_unit`` / ``set_attrs`` / ``write_chunk`` of a unit: the one task that owns the unit
+  (``tasks.clip``), for whole chunks; provenance records are files of their own
+  (``storage.provenance``). ``handedit review`` writes a retarget unit's ``reviews``
+  attribute while no curate run works on that clip.
 """
 
 from __future__ import annotations
@@ -183,7 +186,7 @@ def create_unit(
     attrs: dict | None = None,
     has_arm: bool = False,
 ) -> zarr.Group:
-    """Driver: create (or reuse, when the shape matches) a unit's group and arrays.
+    """The unit's owner: create (or reuse, when the shape matches) its group and arrays.
 
     An array whose shape changed (e.g. an embodiment's DoF) is recreated empty, and the
     unit's provenance is dropped with it, so none of its chunks counts as current.
@@ -200,7 +203,9 @@ def create_unit(
             recreated = True
         _create_array(group, spec, shape, frames_per_chunk)
     if recreated:
-        group.attrs.update({"provenance": {}})
+        from handedit.storage.provenance import drop_records
+
+        drop_records(root, unit)
     if attrs:
         group.attrs.update(jsonable(attrs))
     return group
@@ -222,7 +227,7 @@ def _create_array(group: zarr.Group, spec: ArraySpec, shape: tuple[int, ...], f:
 
 
 def create_previews(root: zarr.Group, unit: Unit, height: int, width: int, side: str) -> None:
-    """Driver: the (empty) review-preview group of one hand of a hand-arm retarget unit."""
+    """The unit's owner: the (empty) review-preview group of one hand of a hand-arm retarget unit."""
     group = root.require_group(preview_path(unit, side))
     k, p = PREVIEW_CANDIDATES, PREVIEW_FRAMES
     for name in ("ego", "third"):
@@ -347,7 +352,7 @@ def unit_attrs(root: zarr.Group, unit: Unit) -> dict:
 
 
 def set_attrs(root: zarr.Group, path: str, values: dict) -> None:
-    """Driver: update attributes of a group (JSON-safe)."""
+    """Update attributes of a group (JSON-safe): its one writer (see module doc)."""
     root.require_group(path).attrs.update(jsonable(values))
 
 

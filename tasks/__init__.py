@@ -1,35 +1,16 @@
-"""Thin Prefect tasks, one module per stage: read inputs, call handedit, write the chunk.
+"""Thin Prefect tasks: one declaration per stage (``tasks/<stage>.py``: what it reads and
+its body), walked chunk by chunk by the two tasks of ``tasks.clip``.
 
-Each returns a provenance record to the flow driver. Retries live here (tasks._options);
-the math lives in ``handedit``.
+Each stage reads its declared inputs, calls ``handedit``, and returns its chunk's arrays
+and statuses; the walk writes them with their provenance record. The math lives in
+``handedit``; retries live in ``tasks.clip``.
 """
 
-from handedit.tasks import composite as _composite
-from handedit.tasks import estimate_hands as _estimate_hands
-from handedit.tasks import harmonize as _harmonize
-from handedit.tasks import ingest as _ingest
-from handedit.tasks import qc as _qc
-from handedit.tasks import registration as _registration
-from handedit.tasks import render as _render
-from handedit.tasks import restore_background as _restore_background
-from handedit.tasks import retarget as _retarget
-from handedit.tasks import segment as _segment
+from handedit.tasks import (composite, estimate_hands, harmonize, ingest, qc, registration, render, restore_background,
+                            retarget, segment)
 
-_MODULES = {
-    "ingest": _ingest,
-    "estimate_hands": _estimate_hands,
-    "registration": _registration,
-    "segment": _segment,
-    "restore_background": _restore_background,
-    "retarget": _retarget,
-    "render": _render,
-    "composite": _composite,
-    "harmonize": _harmonize,
-    "qc": _qc,
-}
-# stage -> Prefect task (what the flow submits)
-STAGE_TASKS = {stage: getattr(module, stage) for stage, module in _MODULES.items()}
-# stage -> the task's body without Prefect (what bench/curate_overhead.py loops over)
-STAGE_BODIES = {stage: module.body for stage, module in _MODULES.items()}
+# Pipeline order. A new stage is one module here and its domain code.
+STAGES = tuple(m.STAGE for m in (ingest, estimate_hands, registration, segment, restore_background,
+                                 retarget, render, composite, harmonize, qc))
 
-__all__ = ["STAGE_TASKS", "STAGE_BODIES"]
+__all__ = ["STAGES"]

@@ -11,9 +11,9 @@ rejection records. So a clip costs 1 + E Prefect task runs, whatever its length.
 
 Each task is the only writer of its units (their arrays and attributes): it creates them,
 writes their chunks and, right after each chunk, that chunk's provenance record (the
-commit marker: a chunk whose record is missing or does not match is recomputed). The
-chunk DAG (``handedit.flows.dag``) says what each chunk reads; records of units another
-task owns (the clip's, for an embodiment task) are read from the store.
+commit marker: a chunk whose record is missing or does not match is recomputed). Each
+stage's declaration (``tasks.stage``, ``tasks.STAGES``) says what each chunk reads; records
+of units another task owns (the clip's, for an embodiment task) are read from the store.
 
 Retries: a transient error (I/O, connection, memory) of a chunk is retried here, twice,
 after 1 and 5 s; any other error rejects that chunk's frames with ``STAGE_ERROR`` and the
@@ -32,18 +32,24 @@ from dataclasses import dataclass, field
 
 from prefect import task
 
+from pydantic import BaseModel, ConfigDict, Field
+
 from handedit.reasons import Reason
-from handedit.storage import Unit, create_unit, read_records, write_records
+from handedit.storage import Unit, create_unit, open_store, read_records, write_records
 from handedit.storage.integrity import missing_objects, stored_objects
 from handedit.storage.handoff import Handoff, handing_over
-from handedit.storage.layout import STAGES
+from handedit.storage.layout import STAGES as STAGE_ORDER
 from handedit.storage.location import location_of
-from handedit.storage.provenance import ChunkRecord, drop_records, is_current, provenance_key
-from handedit.storage.store import CorruptChunk, create_previews, jsonable
+from handedit.storage.provenance import ChunkRecord, changed_inputs, drop_records, is_current, provenance_key
+from handedit.storage.store import CorruptChunk, create_previews
+from handedit.tasks import STAGES
 from handedit.tasks.common import RETRIES, RETRY_DELAYS, ChunkJob, execute, failure_record, is_transient, open_root
+from handedit.tasks.plan import ClipPlan, clip_plan, plan_json, stored_plan
+from handedit.tasks.stage import Inputs, Robot, key_inputs, nodes as stage_nodes
 
-CLIP_STAGES = ("ingest", "estimate_hands", "registration", "segment", "restore_background")
-EMBODIMENT_STAGES = ("retarget", "render", "composite", "harmonize", "qc")
+STAGE = {s.name: s for s in STAGES}
+CLIP_STAGES = tuple(s.name for s in STAGES if s.level != "embodiment")
+EMBODIMENT_STAGES = tuple(s.name for s in STAGES if s.level == "embodiment")
 
 
 @dataclass(frozen=True)
@@ -52,7 +58,7 @@ class ClipJob:
 
     store: str
     spec_json: str
-    config_json: str  # CurateConfig
+    config_json: str  # the run's configuration (flows.config.CurateConfig), read as ``WalkConfig``
     scopes: tuple[str, ...]  # restore scopes the run's embodiments need
     code_version: str
 
@@ -66,27 +72,54 @@ class EmbodimentJob:
     code_version: str
 
 
+class WalkConfig(BaseModel):
+    """What a walk reads of the run's configuration: each stage's parameters (validated by
+    the stage's own config class) and the walk's settings."""
+
+    model_config = ConfigDict(extra="ignore")
+
+    frames_per_chunk: int = 16
+    handoff_mib: int = Field(512, ge=0)
+    reuse_mib: int = Field(512, ge=0)
+    inject_faults: list[str] = []
+    stages: dict[str, BaseModel] = {}
+
+    @classmethod
+    def from_json(cls, text: str) -> "WalkConfig":
+        data = json.loads(text)
+        stages = {s.name: s.config.model_validate(data.get(s.name) or {}) for s in STAGES}
+        return cls.model_validate({**data, "stages": stages})
+
+    def stage_config(self, stage: str) -> BaseModel:
+        return self.stages[stage]
+
+
 @dataclass
 class WalkResult:
     clip: str
     stages: dict = field(default_factory=dict)  # stage -> {ran, skipped, failed}
     errors: list = field(default_factory=list)
     recovered: list = field(default_factory=list)  # chunks recomputed because their data was gone or corrupt
+    recomputed: dict = field(default_factory=dict)  # "stage[embodiment]: what changed" -> chunks
     source_error: str | None = None
     seconds: float = 0.0
 
     def count(self, stage: str, what: str) -> None:
         self.stages.setdefault(stage, {"ran": 0, "skipped": 0, "failed": 0})[what] += 1
 
+    def recompute(self, unit: Unit, why: str) -> None:
+        label = f"{unit.stage}[{unit.embodiment or unit.scope}]" if unit.embodiment or unit.scope else unit.stage
+        key = f"{label}: {why}"
+        self.recomputed[key] = self.recomputed.get(key, 0) + 1
 
-def _config(job):
-    from handedit.flows.config import CurateConfig
 
-    return CurateConfig.model_validate_json(job.config_json)
+def _config(job) -> WalkConfig:
+    return WalkConfig.from_json(job.config_json)
 
 
 def stage_version_params(config, stage: str) -> tuple[int, dict]:
-    """A stage's code version (its config class's VERSION) and parameters."""
+    """A stage's code version (its config class's VERSION; nested configs' versions are
+    inputs, ``tasks.stage.config_versions``) and parameters."""
     cfg = config.stage_config(stage)
     return int(getattr(type(cfg), "VERSION", 1)), cfg.model_dump(mode="json")
 
@@ -100,7 +133,7 @@ def _order(nodes) -> list:
         for d in n.deps:
             if (d.unit, d.chunk) in by_id:
                 children.setdefault((d.unit, d.chunk), set()).add(n.id)
-    rank = {s: i for i, s in enumerate(STAGES)}
+    rank = {s: i for i, s in enumerate(STAGE_ORDER)}
     heap = [((n.chunk, rank[n.unit.stage], n.unit), n.id) for n in nodes if waiting[n.id] == 0]
     heapq.heapify(heap)
     out = []
@@ -121,7 +154,7 @@ def _faulty(config, unit: Unit) -> bool:
 
 
 def walk(nodes, stage_params, records: dict, run_node, on_record, result: WalkResult, faulty=lambda unit: False,
-         prefail=None, missing=None, finished=lambda node: None) -> WalkResult:
+         prefail=None, missing=None, finished=lambda node: None, attrs=lambda unit, name: None) -> WalkResult:
     """Run chunk nodes in streaming dependency order, skipping current ones (pure: no store).
 
     ``stage_params(stage) -> (version, params)``; ``records``: (unit, chunk) -> record of
@@ -131,16 +164,19 @@ def walk(nodes, stage_params, records: dict, run_node, on_record, result: WalkRe
     a failure record instead of running it; ``on_record(node, record)`` persists a new record;
     ``missing(node, record) -> [object keys]`` names stored outputs a current record vouches
     for that are gone: such a chunk is recomputed, and noted in ``result.recovered``;
-    ``finished(node)`` follows every node, run or skipped.
+    ``finished(node)`` follows every node, run or skipped; ``attrs(unit, name)`` reads the
+    store attributes nodes declare. A chunk recomputed because an input changed is counted
+    in ``result.recomputed`` by what changed.
     """
-    from handedit.flows.dag import node_inputs
-
     for node in _order(nodes):
         version, p = stage_params(node.unit.stage)
-        inputs = node_inputs(node, records)
+        inputs = key_inputs(node, records, attrs)
         key = provenance_key(node.unit.stage, version, p, inputs)
         note = None
-        if is_current(records.get(node.id), key):
+        old = records.get(node.id)
+        if old is not None and old.get("key") != key:
+            result.recompute(node.unit, changed_inputs(old, version, p, inputs))
+        if is_current(old, key):
             gone = missing(node, records[node.id]) if missing is not None else []
             if not gone:
                 result.count(node.unit.stage, "skipped")
@@ -162,22 +198,33 @@ def walk(nodes, stage_params, records: dict, run_node, on_record, result: WalkRe
     return result
 
 
-def _walk_store(root, store: str, nodes, config, code_version: str, result: WalkResult, prefail=None) -> WalkResult:
-    """``walk`` on the store: stage bodies run through ``execute``, records go to the units."""
-    from handedit.tasks import STAGE_BODIES
+def _walk_store(root, store: str, plan: ClipPlan, nodes, config: WalkConfig, code_version: str, result: WalkResult,
+                prefail=None) -> WalkResult:
+    """``walk`` on the store: each node's body gets its declared ``Inputs`` and runs through
+    ``execute``; records go to the units."""
+    from handedit.storage import chunk_ranges
 
     records: dict = {}
     for unit in {n.unit for n in nodes} | {d.unit for n in nodes for d in n.deps}:
         for k, rec in read_records(root, unit).items():
             records[(unit, k)] = rec.to_json()
     params = {s: stage_version_params(config, s) for s in {n.unit.stage for n in nodes}}
+    ranges = tuple(chunk_ranges(plan.n_frames, config.frames_per_chunk))
+    fresh: list = []  # the store opened anew, once: operators' attributes may postdate the worker's cached handle
+
+    def attrs(unit: Unit, name: str):
+        if not fresh:
+            fresh.append(open_store(store))
+        return fresh[0][unit.path].attrs.get(name) if unit.path in fresh[0] else None
 
     def job_of(node, key, inputs, version, p, fault=False) -> ChunkJob:
+        track = node.unit.scope or (node.robot.track if node.robot else None)
         return ChunkJob(store, node.unit, node.chunk, node.start, node.stop, key, version, p, inputs, code_version,
-                        node.context, fault=fault)
+                        plan, track, fault=fault)
 
     def run_node(node, key, inputs, version, p, fault) -> dict:
-        return _run(root, job_of(node, key, inputs, version, p, fault), STAGE_BODIES[node.unit.stage])
+        return _run(root, job_of(node, key, inputs, version, p, fault), STAGE[node.unit.stage].body,
+                    lambda: Inputs(root, node, ranges, attrs))
 
     def pre(node, key, inputs, version, p):
         return None if prefail is None else prefail(root, job_of(node, key, inputs, version, p))
@@ -194,7 +241,7 @@ def _walk_store(root, store: str, nodes, config, code_version: str, result: Walk
     def run_noting(node, key, inputs, version, p, fault) -> dict:
         record = run_node(node, key, inputs, version, p, fault)
         if record.get("corrupt"):
-            corrupt.update(_owned_chunk(record["corrupt"], own, config.frames_per_chunk))
+            corrupt.update(_owned_chunk(record["corrupt"], nodes))
         return record
 
     starts = {n.id: n.start for n in nodes}  # the chunks this walk writes
@@ -209,7 +256,7 @@ def _walk_store(root, store: str, nodes, config, code_version: str, result: Walk
         with handing_over(kept):
             return walk(nodes, params.__getitem__, records, run_noting,
                         lambda n, r: write_records(root, n.unit, [ChunkRecord.from_json(r)]), into,
-                        faulty=lambda u: _faulty(config, u), prefail=pre, missing=missing, finished=finished)
+                        faulty=lambda u: _faulty(config, u), prefail=pre, missing=missing, finished=finished, attrs=attrs)
 
     run(result)
     if corrupt:  # a corrupt chunk this task owns: recompute it, then the chunks that failed reading it
@@ -256,17 +303,18 @@ def _handoff(root, nodes, starts: dict, records: dict, budget_mib: int, reuse_mi
     return Handoff(root.store, readers, names, budget_mib << 20, digests, reuse_mib << 20)
 
 
-def _owned_chunk(corrupt: dict, units, f: int) -> list:
-    """[(unit, chunk)] a CorruptChunk's array path and frames point to, if one of ``units``."""
-    unit_path = corrupt["array"].rsplit("/", 1)[0]
-    return [(u, int(corrupt["start"]) // f) for u in units if u.path == unit_path]
+def _owned_chunk(corrupt: dict, nodes) -> list:
+    """[(unit, chunk)] a CorruptChunk's array path and frames point to, if one of the walk's nodes."""
+    unit_path, start = corrupt["array"].rsplit("/", 1)[0], int(corrupt["start"])
+    return [n.id for n in nodes if n.unit.path == unit_path and n.start <= start < n.stop]
 
 
-def _run(root, job: ChunkJob, body) -> dict:
-    """One chunk, with the transient-error retries (see module doc)."""
+def _run(root, job: ChunkJob, body, inputs) -> dict:
+    """One chunk, with the transient-error retries (see module doc); ``inputs()`` makes the
+    body's ``Inputs`` (reading operators' attributes: inside the retried block)."""
     for attempt in range(RETRIES + 1):
         try:
-            record = execute(job, body)
+            record = execute(job, body, inputs())
             record["attempts"] = attempt + 1
             return record
         except Exception as exc:  # noqa: BLE001 - a chunk's failure is recorded, not raised
@@ -284,52 +332,11 @@ def _run(root, job: ChunkJob, body) -> dict:
 # ----------------------------------------------------------------------------- units
 
 
-def clip_plan(spec, estimate: str = "auto"):
-    """A clip's plan from its source (opens it: metadata only); raises SourceError.
-    ``estimate`` (EstimateHandsConfig.mode): whether its hands are estimated from the
-    pixels; such a clip tracks both sides, whatever the source says."""
-    from handedit.flows.dag import ClipPlan
-    from handedit.keypoints import SIDES
-    from handedit.sources import open_source
-
-    info = open_source(spec).info()
-    estimated = estimate == "always" or (estimate == "auto" and not info.has_keypoints)
-    return ClipPlan(
-        clip=info.clip_id, n_frames=info.n_frames, height=info.height, width=info.width,
-        intrinsics=info.intrinsics.to_dict(), source_json=json.dumps(spec.model_dump(mode="json"), sort_keys=True,
-                                                                     separators=(",", ":")),
-        fingerprint=info.fingerprint, has_object=info.has_object, has_gt=bool(info.ground_truth),
-        info=jsonable({**vars(info), "intrinsics": info.intrinsics.to_dict()}),  # the source's own (its hands too)
-        hands=SIDES if estimated else tuple(info.hands), has_arm=info.has_arm and not estimated,
-        has_keypoints=info.has_keypoints or estimated, world=info.world,
-        keypoints_exact=info.keypoints_exact or estimated,  # estimated joints are read off the pixels
-        estimate_hands=estimated,
-    )
-
-
-def _plan_json(plan) -> dict:
-    from dataclasses import asdict
-
-    return jsonable(asdict(plan))
-
-
-def stored_plan(root, clip: str):
-    """The clip's plan as its clip task stored it (None when the clip was never ingested)."""
-    from handedit.flows.dag import ClipPlan
-
-    unit = Unit("ingest", clip)
-    if unit.path not in root or "plan" not in root[unit.path].attrs:
-        return None
-    d = dict(root[unit.path].attrs["plan"])
-    d["hands"] = tuple(d["hands"])
-    return ClipPlan(**d)
-
-
 def create_clip_units(root, config, plan, scopes) -> None:
     f, sizes = config.frames_per_chunk, {"H": plan.height, "W": plan.width, "S": len(plan.hands)}
     hands = {"hands": list(plan.hands)}
     create_unit(root, Unit("ingest", plan.clip), plan.n_frames, sizes, f, plan.has_object, plan.has_gt,
-                attrs={"info": plan.info, "plan": _plan_json(plan), **hands}, has_arm=plan.has_arm)
+                attrs={"info": plan.info, "plan": plan_json(plan), **hands}, has_arm=plan.has_arm)
     if plan.estimate_hands:
         create_unit(root, Unit("estimate_hands", plan.clip), plan.n_frames, sizes, f, attrs=hands)
     create_unit(root, Unit("registration", plan.clip), plan.n_frames, sizes, f, attrs=hands, has_arm=plan.has_arm)
@@ -350,56 +357,64 @@ def create_embodiment_units(root, config, plan, emb: dict) -> None:
             create_previews(root, Unit("retarget", plan.clip, embodiment=emb["id"]), plan.height, plan.width, side)
 
 
-def _asset_inputs(config, nodes, emb: dict | None = None) -> None:
-    """Files a stage reads besides the store are inputs too, by content: a stage's model
-    weights, and the robot's URDF for the stages that load it."""
-    from handedit.digests import model_digests
-
-    for node in nodes:
-        node.fixed_inputs.update(model_digests(config.stage_config(node.unit.stage)))
-        if emb is not None and node.unit.stage in ("retarget", "render"):
-            node.fixed_inputs["urdf"] = emb.get("urdf_digest", "")
-
-
 # ----------------------------------------------------------------------------- tasks
+
+
+def _units(plan: ClipPlan, scopes=(), embodiment: str | None = None) -> list[Unit]:
+    """The units one task walks: the clip's (its restore scopes too), or one embodiment's."""
+    if embodiment is not None:
+        return [Unit(s, plan.clip, embodiment=embodiment) for s in EMBODIMENT_STAGES]
+    out = []
+    for st in STAGES:
+        if st.level == "clip" and st.applies(plan):
+            out.append(Unit(st.name, plan.clip))
+        elif st.level == "scope":
+            out += [Unit(st.name, plan.clip, scope=scope) for scope in sorted(set(scopes))]
+    return out
+
+
+def _label_units(root, config: WalkConfig, units) -> None:
+    from handedit.storage import set_attrs
+
+    for unit in units:
+        v, p = stage_version_params(config, unit.stage)
+        set_attrs(root, unit.path, {"stage": unit.stage, "version": v, "params": p})
+
+
+def clip_nodes(plan: ClipPlan, scopes, config: WalkConfig) -> list:
+    """The chunk nodes of a clip's own stages."""
+    return stage_nodes(STAGES, plan, _units(plan, scopes), config.stages, config.frames_per_chunk)
+
+
+def embodiment_nodes(plan: ClipPlan, robot: Robot, config: WalkConfig) -> list:
+    """The chunk nodes of one embodiment's stages on a clip."""
+    return stage_nodes(STAGES, plan, _units(plan, embodiment=robot.id), config.stages, config.frames_per_chunk, robot)
 
 
 def run_clip(job: ClipJob) -> dict:
     """The body of ``curate_clip`` (also what a bare loop calls)."""
-    from handedit.flows.dag import clip_nodes
     from handedit.sources import SourceError, parse_spec
-    from handedit.storage import set_attrs
 
     t0 = time.perf_counter()
     config = _config(job)
     spec = parse_spec(json.loads(job.spec_json))
     result = WalkResult(spec.id)
     try:
-        plan = clip_plan(spec, config.estimate_hands.mode)
+        plan = clip_plan(spec, config.stages["estimate_hands"].mode)
     except SourceError as exc:
         result.source_error = str(exc)
         return vars(result)
     root = open_root(job.store)
     create_clip_units(root, config, plan, job.scopes)
-    for stage in CLIP_STAGES:
-        if stage == "estimate_hands" and not plan.estimate_hands:
-            continue
-        for scope in (job.scopes if stage == "restore_background" else (None,)):
-            unit = Unit(stage, plan.clip, scope=scope)
-            v, p = stage_version_params(config, stage)
-            set_attrs(root, unit.path, {"stage": stage, "version": v, "params": p})
-    nodes = clip_nodes(plan, job.scopes, config.frames_per_chunk, config.restore_background.window)
-    _asset_inputs(config, nodes)
-    _walk_store(root, job.store, nodes, config, job.code_version, result)
+    nodes = clip_nodes(plan, job.scopes, config)
+    _label_units(root, config, sorted({n.unit for n in nodes}, key=lambda u: u.path))
+    _walk_store(root, job.store, plan, nodes, config, job.code_version, result)
     result.seconds = time.perf_counter() - t0
     return vars(result)
 
 
 def run_embodiment(job: EmbodimentJob) -> dict:
     """The body of ``curate_embodiment``."""
-    from handedit.flows.dag import embodiment_nodes
-    from handedit.storage import set_attrs
-
     t0 = time.perf_counter()
     config = _config(job)
     result = WalkResult(job.clip)
@@ -410,18 +425,16 @@ def run_embodiment(job: EmbodimentJob) -> dict:
         result.source_error = "the clip could not be ingested (see its clip-level rejection)"
         return vars(result)
     create_embodiment_units(root, config, plan, emb)
-    for stage in EMBODIMENT_STAGES:
-        v, p = stage_version_params(config, stage)
-        set_attrs(root, Unit(stage, plan.clip, embodiment=emb["id"]).path, {"version": v, "params": p})
-    nodes = embodiment_nodes(plan, emb["id"], emb["scope"], config.frames_per_chunk)
-    _asset_inputs(config, nodes, emb)
+    robot = Robot(emb["id"], emb["scope"], emb.get("robot_digest", ""))
+    nodes = embodiment_nodes(plan, robot, config)
+    _label_units(root, config, _units(plan, embodiment=robot.id))
 
     def prefail(root_, cj: ChunkJob) -> dict | None:
         if not emb.get("error") or cj.unit.stage != "retarget":
             return None
         return failure_record(cj, root_, Reason(int(emb["reason"])), emb["error"], 0)
 
-    _walk_store(root, job.store, nodes, config, job.code_version, result, prefail=prefail)
+    _walk_store(root, job.store, plan, nodes, config, job.code_version, result, prefail=prefail)
     result.seconds = time.perf_counter() - t0
     return vars(result)
 

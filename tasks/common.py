@@ -1,9 +1,8 @@
-"""What every stage task shares: the job it receives, the retry policy, the record it returns.
+"""What every stage shares: the job of one chunk, the retry policy, the record it leaves.
 
-A task handles one chunk of frames (never one frame: a Prefect task on Dask costs
-~100 ms of orchestration). It opens the store, reads its inputs, calls the domain
-function, writes its own chunk, and returns a provenance record to the driver, which
-is the only process that writes attributes.
+A stage body handles one chunk of frames (never one frame), reading only its declared
+inputs (``tasks.stage``); ``execute`` writes the chunk's arrays, and the walk
+(``tasks.clip``) writes the chunk's provenance record right after them.
 """
 
 from __future__ import annotations
@@ -20,6 +19,7 @@ from handedit.reasons import Reason
 from handedit.secrets import redact
 from handedit.storage import ChunkRecord, Unit, write_chunk
 from handedit.storage.store import now_iso
+from handedit.tasks.plan import ClipPlan
 
 # Failures worth another attempt: I/O hiccups, lost connections, resource pressure.
 TRANSIENT = (OSError, TimeoutError, ConnectionError, MemoryError)
@@ -59,7 +59,8 @@ class ChunkJob:
     params: dict
     inputs: dict[str, str]
     code_version: str
-    context: dict = field(default_factory=dict)
+    plan: ClipPlan
+    track: str | None = None  # the mask the unit works with: its restore scope or its robot's track
     fault: bool = False
 
     @property
@@ -111,8 +112,9 @@ def seed_from(key: str) -> None:
     cv2.setRNGSeed(int(key[:8], 16) % (2**31 - 1) if key and all(c in "0123456789abcdef" for c in key[:8]) else 0)
 
 
-def execute(job: ChunkJob, body: Callable[[zarr.Group, ChunkJob], StageOutput]) -> dict:
-    """Run a stage body on one chunk, write its outputs, return its provenance record."""
+def execute(job: ChunkJob, body: Callable[..., StageOutput], inputs) -> dict:
+    """Run a stage body on one chunk (``inputs``: its ``tasks.stage.Inputs``), write its
+    outputs, return its provenance record."""
     started, t0 = now_iso(), time.perf_counter()
     if job.fault:
         raise InjectedFault(f"fault injected into {job.unit.label} chunk {job.chunk}")
@@ -123,7 +125,7 @@ def execute(job: ChunkJob, body: Callable[[zarr.Group, ChunkJob], StageOutput]) 
     # the Dask dashboard's fine performance metrics: time per stage (label) within the
     # task's span (curate/clip or curate/<embodiment>); a no-op outside a Dask worker
     with context_meter.meter(job.unit.stage):
-        out = body(root, job)
+        out = body(inputs, job)
         status = np.asarray(out.status, dtype=np.int16)
         arrays = {**out.arrays, "status": status}
         if out.hand_status is not None:
@@ -159,7 +161,7 @@ def make_record(
                       for i in np.flatnonzero(status >= 100)]
     else:
         hs = np.asarray(hand_status)
-        sides = list(job.context.get("hands") or [])
+        sides = list(job.plan.hands)
         hand_details = hand_details or {}
         rejections = [{"frame": job.start + int(i), "side": sides[k] if k < len(sides) else str(k), "reason": int(hs[i, k]),
                        "detail": text(int(hs[i, k]), hand_details.get((int(i), int(k))) or details.get(int(i)))}
@@ -188,10 +190,8 @@ def make_record(
 
 
 def failure_record(job: ChunkJob, root: zarr.Group, reason: Reason, error: str, attempts: int) -> dict:
-    """Driver side: a chunk whose task failed for good. Its frames get ``reason``.
-
-    The failed task is no longer running, so the driver is the chunk's only writer.
-    """
+    """A chunk whose body failed for good (or that cannot run): its frames get ``reason``.
+    Written by the walk that owns the chunk's unit, its only writer."""
     status = np.full(job.n, int(reason), dtype=np.int16)
     arrays = {"status": status}
     group = root[job.unit.path]

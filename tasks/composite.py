@@ -11,38 +11,52 @@ no robot covers it: RESIDUE), and hand-arm robots for lying where the human arm 
 from __future__ import annotations
 
 import numpy as np
-import zarr
-from prefect import task
 
 from handedit.camera import Intrinsics, project
 from handedit.reasons import Reason, combine, gate, per_frame
-from handedit.storage import Unit, read_chunk, writable
+from handedit.storage import Unit, writable
 from handedit.storage.layout import SCOPE_MASK
-from handedit.tasks._options import stage_options
-from handedit.tasks.common import ChunkJob, StageOutput, execute
-from handedit.vision.composite import CompositeConfig, composite as composite_frames, robot_windows
+from handedit.tasks.common import ChunkJob, StageOutput
+from handedit.tasks.stage import At, Inputs, Stage
 from handedit.vision.arm import limbs, off_arm_shares, off_arm_status
+from handedit.vision.composite import CompositeConfig, composite as composite_frames, robot_windows
 from handedit.vision.object_depth import object_occluder
 
+RESTORED = ("background", "hole", "status")
+RENDERED = ("rgba", "depth", "robot_side", "hand_status", "status")
 
-def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
-    clip, emb, scope = job.unit.clip, job.unit.embodiment, job.context["scope"]
-    a, b = job.start, job.stop
-    bg = read_chunk(root, Unit("restore_background", clip, scope=scope), ["background", "hole", "status"], a, b)
-    ren = read_chunk(root, Unit("render", clip, embodiment=emb), ["rgba", "robot_side", "hand_status", "status"], a, b)
-    seg = read_chunk(root, Unit("segment", clip), [SCOPE_MASK[scope], "hand_status"], a, b)
-    tracked_arm = scope == "hand_arm" and job.context.get("has_arm", False)  # widens the off-arm corridor
-    reg = read_chunk(root, Unit("registration", clip), ["keypoints", "keypoints_valid", *(["arm_keypoints"] if tracked_arm else [])],
-                     a, b)
-    intr = Intrinsics(**job.context["intrinsics"])
-    src = read_chunk(root, Unit("ingest", clip), ["frames", *(["arm_valid"] if tracked_arm else [])], a, b)
+
+def _arrays(plan, track: str) -> tuple[list[str], list[str]]:
+    """What it reads of ingest and of registration; the tracked arm widens the off-arm corridor."""
+    arm = track == "hand_arm" and plan.has_arm
+    src = ["frames", *(["arm_valid"] if arm else []), *(["object_mask", "object_depth"] if plan.has_object else [])]
+    return src, ["keypoints", "keypoints_valid", *(["arm_keypoints"] if arm else [])]
+
+
+def reads(at: At) -> list:
+    clip, emb, track = at.plan.clip, at.unit.embodiment, at.track
+    src, reg = _arrays(at.plan, track)
+    return [*at.each(Unit("restore_background", clip, scope=track), RESTORED),
+            *at.each(Unit("render", clip, embodiment=emb), RENDERED),
+            *at.each(Unit("segment", clip), (SCOPE_MASK[track], "hand_status")),
+            *at.each(Unit("ingest", clip), src), *at.each(Unit("registration", clip), reg)]
+
+
+def body(inp: Inputs, job: ChunkJob) -> StageOutput:
+    plan, clip, emb, scope = job.plan, job.unit.clip, job.unit.embodiment, job.track
+    src_names, reg_names = _arrays(plan, scope)
+    bg = inp.read(Unit("restore_background", clip, scope=scope), RESTORED)
+    ren = inp.read(Unit("render", clip, embodiment=emb), ["rgba", "robot_side", "hand_status", "status"])
+    seg = inp.read(Unit("segment", clip), [SCOPE_MASK[scope], "hand_status"])
+    reg = inp.read(Unit("registration", clip), reg_names)
+    src = inp.read(Unit("ingest", clip), src_names)
+    intr = Intrinsics(**plan.intrinsics)
     cfg = CompositeConfig(**job.params)
     windows = robot_windows(ren["rgba"], cfg)
     occluder, occluder_depth = None, None
-    if job.context.get("has_object"):
-        obj = read_chunk(root, Unit("ingest", clip), ["object_mask", "object_depth"], a, b)
-        occluder, occluder_depth = object_occluder(obj["object_mask"], obj["object_depth"])
-    robot_depth = None if occluder_depth is None else read_chunk(root, Unit("render", clip, embodiment=emb), ["depth"], a, b)["depth"]
+    if plan.has_object:
+        occluder, occluder_depth = object_occluder(src["object_mask"], src["object_depth"])
+    robot_depth = None if occluder_depth is None else inp.read(Unit("render", clip, embodiment=emb), ["depth"])["depth"]
     ready = gate(bg["status"], ren["status"])
     replace = ready[:, None] & (ren["hand_status"] == Reason.OK)
     result = composite_frames(bg["background"], ren["rgba"], robot_depth, occluder, occluder_depth, cfg,
@@ -52,7 +66,7 @@ def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     own = result.hand_status
     extra = {"residue_max": _side_max(result.residue), "restore_residue_frames": int(result.restored_residue.sum())}
     if scope == "hand_arm":  # base plausibility: the robot arm where the human arm was
-        limbs_3d = limbs(reg["keypoints"], reg["arm_keypoints"], src["arm_valid"]) if tracked_arm else None
+        limbs_3d = limbs(reg["keypoints"], reg["arm_keypoints"], src["arm_valid"]) if "arm_keypoints" in reg else None
         checked = replace & (own == Reason.OK)
         off = off_arm_shares(result.robot_mask, seg[SCOPE_MASK[scope]], limbs_3d, intr, checked, cfg.arm_corridor_frac)
         own = off_arm_status(own, checked, off, cfg.max_off_arm)
@@ -70,6 +84,4 @@ def _side_max(values: np.ndarray) -> list[float | None]:
     return [float(np.nanmax(v)) if np.isfinite(v).any() else None for v in np.asarray(values).T]
 
 
-@task(**stage_options("composite"))
-def composite(job: ChunkJob) -> dict:
-    return execute(job, body)
+STAGE = Stage("composite", "embodiment", CompositeConfig, reads, body)

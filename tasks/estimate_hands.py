@@ -1,46 +1,46 @@
 """estimate_hands: both sides' 3-D keypoints from the pixels, for a clip without any.
 
-One job covers the whole clip (tracking and each track's side run over the sequence); it
+One node covers the whole clip (tracking and each track's side run over the sequence); it
 reads the ingested frames chunk by chunk, so a clip is never held in memory.
 """
 
 from __future__ import annotations
 
 import numpy as np
-import zarr
-from prefect import task
 
 from handedit.camera import Intrinsics
 from handedit.reasons import combine_hands, gate, per_frame
-from handedit.storage import Unit, chunk_ranges, read_chunk
-from handedit.tasks._options import stage_options
-from handedit.tasks.common import ChunkJob, StageOutput, execute
+from handedit.storage import Unit
+from handedit.tasks.common import ChunkJob, StageOutput
+from handedit.tasks.stage import At, Inputs, Stage
 from handedit.vision import estimate_hands as domain
 
 
-def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
+def reads(at: At) -> list:
+    return at.each(Unit("ingest", at.plan.clip), ("frames", "status"))
+
+
+def body(inp: Inputs, job: ChunkJob) -> StageOutput:
     ingest = Unit("ingest", job.unit.clip)
-    ranges = chunk_ranges(job.n, int(root.attrs["frames_per_chunk"]))
-    status = np.concatenate([read_chunk(root, ingest, ["status"], s, e)["status"] for s, e in ranges])
-    frames = (f for s, e in ranges for f in read_chunk(root, ingest, ["frames"], s, e)["frames"])
+    status = np.concatenate([inp.read(ingest, ["status"], s, e)["status"] for s, e in inp.ranges])
+    frames = (f for s, e in inp.ranges for f in inp.read(ingest, ["frames"], s, e)["frames"])
     cfg = domain.EstimateHandsConfig(**job.params)
-    intr = Intrinsics(**job.context["intrinsics"])
+    intr = Intrinsics(**job.plan.intrinsics)
     lifter = None
     if cfg.model_path is not None:
         from handedit.models.hand_pose import HandPoseLifter
 
         lifter = HandPoseLifter(cfg.model_path, intr)
-    est = domain.estimate_hands(frames, job.n, intr, float(job.context.get("fps", 30.0)), cfg, lifter=lifter)
+    est = domain.estimate_hands(frames, job.n, intr, job.plan.fps, cfg, lifter=lifter)
     ok = gate(status)
     hand_status = combine_hands(est.hand_status, np.repeat(ok[:, None], est.hand_status.shape[1], 1))
     arrays = {"keypoints": est.keypoints, "keypoints_raw": est.keypoints_raw, "keypoints_valid": est.keypoints_valid & ok[:, None, None],
               "confidence": est.confidence, "box": est.box, "p_right": est.p_right, "reprojection_px": est.reprojection_px}
     method = est.method + (f"+{lifter.tag}" if lifter is not None else "")
-    extra = {**est.stats, "intrinsics": intr.to_dict(), "intrinsics_origin": job.context.get("intrinsics_origin")}
+    extra = {**est.stats, "intrinsics": intr.to_dict(), "intrinsics_origin": job.plan.intrinsics_origin}
     return StageOutput(arrays, per_frame(hand_status), method=method, extra=extra, hand_status=hand_status,
                        hand_details=est.details)
 
 
-@task(**stage_options("estimate_hands"))
-def estimate_hands(job: ChunkJob) -> dict:
-    return execute(job, body)
+STAGE = Stage("estimate_hands", "clip", domain.EstimateHandsConfig, reads, body,
+              whole_clip=lambda plan, track: True, applies=lambda plan: plan.estimate_hands)

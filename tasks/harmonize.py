@@ -2,23 +2,24 @@
 
 from __future__ import annotations
 
-import zarr
-from prefect import task
-
 from handedit.reasons import combine, gate
+from handedit.storage import Unit, writable
+from handedit.tasks.common import ChunkJob, StageOutput
+from handedit.tasks.stage import At, Inputs, Stage
 from handedit.vision.harmonize import HarmonizeConfig, harmonize as harmonize_frames
-from handedit.storage import Unit, read_chunk, writable
-from handedit.tasks._options import stage_options
-from handedit.tasks.common import ChunkJob, StageOutput, execute
+
+COMPOSITED = ("image", "robot_mask", "status")
 
 
-def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
-    comp = read_chunk(root, Unit("composite", job.unit.clip, embodiment=job.unit.embodiment), ["image", "robot_mask", "status"], job.start, job.stop)
+def reads(at: At) -> list:
+    return at.each(Unit("composite", at.plan.clip, embodiment=at.unit.embodiment), COMPOSITED)
+
+
+def body(inp: Inputs, job: ChunkJob) -> StageOutput:
+    comp = inp.read(Unit("composite", job.unit.clip, embodiment=job.unit.embodiment), COMPOSITED)
     result = harmonize_frames(comp["image"], comp["robot_mask"].any(axis=1), HarmonizeConfig(**job.params),
                               out=writable(comp["image"]))  # read for this chunk only: harmonized in place
     return StageOutput({"image": result.image}, combine(result.status, gate(comp["status"])), method=result.method)
 
 
-@task(**stage_options("harmonize"))
-def harmonize(job: ChunkJob) -> dict:
-    return execute(job, body)
+STAGE = Stage("harmonize", "embodiment", HarmonizeConfig, reads, body)

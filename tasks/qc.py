@@ -2,29 +2,35 @@
 
 from __future__ import annotations
 
-import zarr
-from prefect import task
-
 from handedit.qc import QCConfig, final_status
-from handedit.storage import Unit, read_chunk
+from handedit.storage import Unit
 from handedit.storage.layout import PER_HAND_STAGES
-from handedit.tasks._options import stage_options
-from handedit.tasks.common import ChunkJob, StageOutput, execute
+from handedit.tasks.common import ChunkJob, StageOutput
+from handedit.tasks.stage import At, Inputs, Stage
 
 
-def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
-    units = [Unit(**u) for u in job.context["upstream"]]
+def upstream(clip: str, emb: str, track: str) -> list[tuple[Unit, tuple[str, ...]]]:
+    """Every unit a kept pair passed through, with the statuses qc reads of it."""
+    units = [Unit("ingest", clip), Unit("registration", clip), Unit("segment", clip),
+             Unit("restore_background", clip, scope=track),
+             *(Unit(s, clip, embodiment=emb) for s in ("retarget", "render", "composite", "harmonize"))]
+    return [(u, ("status", *(("hand_status",) if u.stage in PER_HAND_STAGES else ()))) for u in units]
+
+
+def reads(at: At) -> list:
+    return [a for u, names in upstream(at.plan.clip, at.unit.embodiment, at.track) for a in at.each(u, names)]
+
+
+def body(inp: Inputs, job: ChunkJob) -> StageOutput:
     frames, hands = [], []
-    for u in units:
-        per_hand = u.stage in PER_HAND_STAGES
-        got = read_chunk(root, u, ["status", *(["hand_status"] if per_hand else [])], job.start, job.stop)
+    for unit, names in upstream(job.unit.clip, job.unit.embodiment, job.track):
+        got = inp.read(unit, names)
         frames.append(got["status"])
-        if per_hand:
+        if "hand_status" in got:
             hands.append(got["hand_status"])
-    status, hand_status = final_status(frames, hands, QCConfig(**job.params))
-    return StageOutput({}, status, method=f"status-gate:{QCConfig(**job.params).keep}", hand_status=hand_status)
+    cfg = QCConfig(**job.params)
+    status, hand_status = final_status(frames, hands, cfg)
+    return StageOutput({}, status, method=f"status-gate:{cfg.keep}", hand_status=hand_status)
 
 
-@task(**stage_options("qc"))
-def qc(job: ChunkJob) -> dict:
-    return execute(job, body)
+STAGE = Stage("qc", "embodiment", QCConfig, reads, body)

@@ -1,43 +1,63 @@
 """retarget: robot joint trajectories and root poses of every hand in one chunk (hand-only)
-or in the whole clip (hand-arm: the virtual base is fixed per sequence)."""
+or in the whole clip (hand-arm: the virtual base is fixed per sequence).
+
+Its inputs besides the store: the robot (the content of its URDF and meshes), the source
+(its object's mesh, where it has one), and, for hand-arms, the operators' review decisions
+(``handedit review``) kept on the unit."""
 
 from __future__ import annotations
 
 import numpy as np
-import zarr
-from prefect import task
 
 from handedit.camera import Intrinsics
 from handedit.reasons import Reason, combine, gate, per_frame
 from handedit.retarget import RetargetConfig
+from handedit.retarget.qc import RetargetQCConfig
 from handedit.retarget.sides import SidesResult, preview_intrinsics, retarget_hand_arm_sides, retarget_sides
-from handedit.storage import Unit, open_store, read_chunk
-from handedit.storage.store import write_previews
-from handedit.tasks._options import stage_options
-from handedit.tasks.common import ChunkJob, StageOutput, execute
+from handedit.storage import Unit
+from handedit.tasks.common import ChunkJob, StageOutput
+from handedit.tasks.stage import At, Attr, Inputs, Stage, Value
+
+REVIEWS = "reviews"  # the retarget unit's attribute ``handedit review`` writes
+REGISTERED = ["keypoints", "keypoints_valid", "hand_status", "status"]
 
 
-def _inputs(root: zarr.Group, job: ChunkJob, extra: tuple[str, ...] = ()) -> dict:
-    clip = job.unit.clip
-    arm = job.context.get("has_arm", False) and job.context.get("track") == "hand_arm"
-    src = read_chunk(root, Unit("ingest", clip), ["status", *extra, *(["arm_valid"] if arm else [])], job.start, job.stop)
-    reg = read_chunk(root, Unit("registration", clip), ["keypoints", "keypoints_valid", "hand_status", "status",
-                                                    *(["arm_keypoints"] if arm else [])], job.start, job.stop)
-    seg = read_chunk(root, Unit("segment", clip), ["hand_status"], job.start, job.stop)
+def _arrays(plan, hand_arm: bool) -> tuple[list[str], list[str]]:
+    """What it reads of ingest and of registration (and of segment: ``hand_status``)."""
+    arm = plan.has_arm and hand_arm
+    src = ["status", *(["world_from_camera"] if hand_arm else []), *(["object_pose"] if plan.has_object else []),
+           *(["arm_valid"] if arm else [])]
+    return src, [*REGISTERED, *(["arm_keypoints"] if arm else [])]
+
+
+def reads(at: At) -> list:
+    plan, hand_arm = at.plan, at.track == "hand_arm"
+    src, reg = _arrays(plan, hand_arm)
+    out = [*at.each(Unit("ingest", plan.clip), src), *at.each(Unit("registration", plan.clip), reg),
+           *at.each(Unit("segment", plan.clip), ("hand_status",)), Value("robot", at.robot.digest)]
+    if plan.has_object:  # the object's mesh comes from the source
+        out.append(Value("source", plan.fingerprint))
+    if hand_arm:
+        out.append(Attr(at.unit, REVIEWS))
+    return out
+
+
+def _inputs(inp: Inputs, job: ChunkJob) -> dict:
+    plan, clip = job.plan, job.unit.clip
+    src_names, reg_names = _arrays(plan, job.track == "hand_arm")
+    src = inp.read(Unit("ingest", clip), src_names)
+    reg = inp.read(Unit("registration", clip), reg_names)
+    seg = inp.read(Unit("segment", clip), ["hand_status"])
     ok = gate(src["status"], reg["status"])
     # a hand is retargeted where it was registered and segmented
     ready = ok[:, None] & (reg["hand_status"] == Reason.OK) & (seg["hand_status"] == Reason.OK)
     return {**src, **{f"reg_{k}": v for k, v in reg.items()}, "seg_hand_status": seg["hand_status"], "ok": ok, "ready": ready}
 
 
-def _object(root: zarr.Group, job: ChunkJob):
+def _object_mesh(job: ChunkJob):
     from handedit.sources import open_source_json
 
-    if not (job.context.get("has_object") and job.context.get("source")):
-        return None, None
-    mesh = open_source_json(job.context["source"]).object_mesh()
-    pose = read_chunk(root, Unit("ingest", job.unit.clip), ["object_pose"], job.start, job.stop)["object_pose"]
-    return mesh, pose
+    return open_source_json(job.plan.source_json).object_mesh() if job.plan.has_object else None
 
 
 def _output(res: SidesResult, inp: dict, method: str, extra: dict) -> StageOutput:
@@ -51,35 +71,34 @@ def _output(res: SidesResult, inp: dict, method: str, extra: dict) -> StageOutpu
                        extra={"qc_contact_checked": res.contact_checked, "qc_notes": res.notes, **extra})
 
 
-def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
-    if job.context.get("track") == "hand_arm":
-        return _hand_arm_body(root, job)
-    inp = _inputs(root, job)
-    mesh, pose = _object(root, job)
-    sides = tuple(job.context["hands"])
-    res = retarget_sides(inp["reg_keypoints"], inp["reg_keypoints_valid"], inp["ready"], sides, job.unit.embodiment,
-                         RetargetConfig(**job.params), object_mesh=mesh, object_pose=pose)
-    return _output(res, inp, "casadi:ipopt-hybrid", {})
+def body(inp: Inputs, job: ChunkJob) -> StageOutput:
+    if job.track == "hand_arm":
+        return _hand_arm_body(inp, job)
+    arrays = _inputs(inp, job)
+    res = retarget_sides(arrays["reg_keypoints"], arrays["reg_keypoints_valid"], arrays["ready"], job.plan.hands,
+                         job.unit.embodiment, RetargetConfig(**job.params), object_mesh=_object_mesh(job),
+                         object_pose=arrays.get("object_pose"))
+    return _output(res, arrays, "casadi:ipopt-hybrid", {})
 
 
-def _hand_arm_body(root: zarr.Group, job: ChunkJob) -> StageOutput:
-    """Hand-arm: one job covers the whole clip (the virtual base is fixed per sequence);
-    the sequence-level record (all 27 candidate scores per side, the choice and its policy,
+def _hand_arm_body(inp: Inputs, job: ChunkJob) -> StageOutput:
+    """Hand-arm: one node covers the whole clip (the virtual base is fixed per sequence);
+    the sequence-level record (all candidate scores per side, the choice and its policy,
     the dual-arm pair) goes to provenance, the top candidates' previews to the store."""
     from handedit.retarget.preview import top_previews
 
-    inp = _inputs(root, job, ("world_from_camera",))
-    mesh, pose = _object(root, job)
-    sides = tuple(job.context["hands"])
-    # operators' choices from `handedit review`, per hand (read fresh: the cached root may predate them)
-    reviews = open_store(job.store).get(job.unit.path).attrs.get("reviews") or {}
+    plan = job.plan
+    arrays = _inputs(inp, job)
+    sides = plan.hands
+    reviews = inp.attr(job.unit, REVIEWS) or {}  # operators' choices from `handedit review`, per hand
     choices = {s: reviews[s]["choice"] for s in sides if s in reviews}
-    world = job.context.get("world")
-    wfc = inp["world_from_camera"] if world else None
-    intr = Intrinsics(**job.context["intrinsics"])
-    res = retarget_hand_arm_sides(inp["reg_keypoints"], inp["reg_keypoints_valid"], inp["ready"], sides, job.unit.embodiment,
-                                  RetargetConfig(**job.params), wfc, world, inp.get("reg_arm_keypoints"), inp.get("arm_valid"),
-                                  choices, object_mesh=mesh, object_pose=pose, intr=intr)
+    world = plan.world
+    wfc = arrays["world_from_camera"] if world else None
+    intr = Intrinsics(**plan.intrinsics)
+    res = retarget_hand_arm_sides(arrays["reg_keypoints"], arrays["reg_keypoints_valid"], arrays["ready"], sides,
+                                  job.unit.embodiment, RetargetConfig(**job.params), wfc, world,
+                                  arrays.get("reg_arm_keypoints"), arrays.get("arm_valid"), choices,
+                                  object_mesh=_object_mesh(job), object_pose=arrays.get("object_pose"), intr=intr)
     previews = {}
     for k, side in enumerate(sides):
         arm_res = res.arm_results.get(k)
@@ -90,8 +109,8 @@ def _hand_arm_body(root: zarr.Group, job: ChunkJob) -> StageOutput:
                                                  up=None if world is None else np.asarray(world["up"], float))
         if side == "left":  # rendered in the mirrored view: flip back
             ego, third = ego[..., ::-1, :], third[..., ::-1, :]
-        previews[side] = write_previews(root, job.unit, cands, frames, ego, third, side=side)
-    return _output(res, inp, "casadi:ipopt-hybrid+virtual-base", {"virtual_base": res.virtual_base, "previews": previews})
+        previews[side] = inp.write_previews(cands, frames, ego, third, side=side)
+    return _output(res, arrays, "casadi:ipopt-hybrid+virtual-base", {"virtual_base": res.virtual_base, "previews": previews})
 
 
 def _side_world(wfc: np.ndarray, side: str) -> np.ndarray:
@@ -100,6 +119,6 @@ def _side_world(wfc: np.ndarray, side: str) -> np.ndarray:
     return mirror_world(wfc) if side == "left" else wfc
 
 
-@task(**stage_options("retarget"))
-def retarget(job: ChunkJob) -> dict:
-    return execute(job, body)
+STAGE = Stage("retarget", "embodiment", RetargetConfig, reads, body,
+              whole_clip=lambda plan, track: track == "hand_arm", settings=("HANDEDIT_CASADI_COMPILE",),
+              uses=(RetargetQCConfig,))

@@ -2,31 +2,39 @@
 
 from __future__ import annotations
 
-import zarr
-from prefect import task
-
 from handedit.camera import Intrinsics, project
 from handedit.reasons import Reason, combine, combine_hands, follow_hands, gate, per_frame
+from handedit.storage import Unit
+from handedit.tasks.common import ChunkJob, StageOutput
+from handedit.tasks.stage import At, Inputs, Stage
 from handedit.vision.arm import limbs
 from handedit.vision.segment import SegmentConfig, segment as segment_frames
-from handedit.storage import Unit, read_chunk
-from handedit.tasks._options import stage_options
-from handedit.tasks.common import ChunkJob, StageOutput, execute
 
 
-def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
-    clip = job.unit.clip
-    arm = job.context.get("has_arm", False)
-    src = read_chunk(root, Unit("ingest", clip), ["frames", "status", *(["arm_valid"] if arm else [])], job.start, job.stop)
-    reg = read_chunk(root, Unit("registration", clip), ["keypoints", "keypoints_valid", "hand_status", "status",
-                                                    *(["arm_keypoints"] if arm else [])], job.start, job.stop)
-    intr = Intrinsics(**job.context["intrinsics"])
+def _arrays(plan) -> tuple[list[str], list[str]]:
+    """What it reads of ingest and of registration."""
+    arm = plan.has_arm
+    return (["frames", "status", *(["arm_valid"] if arm else [])],
+            ["keypoints", "keypoints_valid", "hand_status", "status", *(["arm_keypoints"] if arm else [])])
+
+
+def reads(at: At) -> list:
+    src, reg = _arrays(at.plan)
+    return [*at.each(Unit("ingest", at.plan.clip), src), *at.each(Unit("registration", at.plan.clip), reg)]
+
+
+def body(inp: Inputs, job: ChunkJob) -> StageOutput:
+    plan, clip = job.plan, job.unit.clip
+    src_names, reg_names = _arrays(plan)
+    src = inp.read(Unit("ingest", clip), src_names)
+    reg = inp.read(Unit("registration", clip), reg_names)
+    intr = Intrinsics(**plan.intrinsics)
     cfg = SegmentConfig(**job.params)
     ok = gate(src["status"], reg["status"])
-    if job.context.get("has_keypoints", True):
+    if plan.has_keypoints:
         present = reg["hand_status"] == Reason.OK
         # the tracked arm (wrist -> elbow -> shoulder, camera frame): its whole length, sleeves included
-        arm_limbs = limbs(reg["keypoints"], reg["arm_keypoints"], src["arm_valid"]) if arm else None
+        arm_limbs = limbs(reg["keypoints"], reg["arm_keypoints"], src["arm_valid"]) if plan.has_arm else None
         result = segment_frames(src["frames"], project(reg["keypoints"], intr), reg["keypoints_valid"], cfg,
                                 present=present, limbs=arm_limbs, intr=intr)
         hand_status = follow_hands(combine_hands(result.hand_status, ok[:, None]), reg["hand_status"])
@@ -37,6 +45,4 @@ def body(root: zarr.Group, job: ChunkJob) -> StageOutput:
     return StageOutput(arrays, combine(per_frame(hand_status), ok), method=result.method, hand_status=hand_status)
 
 
-@task(**stage_options("segment"))
-def segment(job: ChunkJob) -> dict:
-    return execute(job, body)
+STAGE = Stage("segment", "clip", SegmentConfig, reads, body)

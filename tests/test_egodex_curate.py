@@ -20,7 +20,7 @@ from handedit.flows.config import ClusterConfig, CurateConfig
 from handedit.flows.curate import run_curate
 from handedit.reasons import Reason
 from handedit.sources import EgoDexTree
-from handedit.storage import Unit, open_store, read_ledger
+from handedit.storage import Unit, open_store, read_ledger, read_records
 from handedit.vision.composite import CompositeConfig, human_residue
 
 from test_curate_handarm import _set_env
@@ -99,7 +99,7 @@ def test_registered_keypoints_land_in_their_own_hand(run):
         reg = root[Unit("registration", clip).path]
         seg = root[Unit("segment", clip).path]
         assert np.abs(reg["offset_px"][:]).max() > 0  # something was corrected on real data ...
-        rec = reg.attrs["provenance"]["0"]
+        rec = read_records(root, Unit("registration", clip))[0].to_json()
         assert rec["method"] == "classical:colour-align" and len(rec["extra"]["offset_px_mean"]) == 2  # ... and recorded
         kp, valid, hs = reg["keypoints"][:], reg["keypoints_valid"][:], reg["hand_status"][:]
         masks = seg["handarm_mask"][:]

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import shutil
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -36,10 +37,27 @@ def arrays(root) -> dict[str, np.ndarray]:
 
 
 def assert_same_bytes(a: Path, b: Path) -> None:
+    """Every array of every stage, chunk by chunk; the message names each chunk that differs."""
     da, db = arrays(open_store(a)), arrays(open_store(b))
     assert set(da) == set(db)
-    for k in da:
-        assert da[k].dtype == db[k].dtype and da[k].tobytes() == db[k].tobytes(), k
+    differ = [f"{k}#{s // F}" for k in da for s in range(0, len(da[k]), F)
+              if da[k].dtype != db[k].dtype or da[k][s:s + F].tobytes() != db[k][s:s + F].tobytes()]
+    assert not differ, differ
+
+
+@contextmanager
+def busy_cores(n: int | None = None):
+    """Other processes keep every core busy (how the runs that differed were made)."""
+    import subprocess
+    import sys
+
+    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n or os.cpu_count() or 2)]
+    try:
+        yield
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()
 
 
 @pytest.fixture(scope="module")
@@ -72,8 +90,10 @@ SEGMENT = Unit("segment", CLIP)
 
 
 def test_two_fresh_runs_on_different_worker_counts_write_the_same_bytes(reference, tmp_path, prefect_api):
-    # the reference ran on 2 worker processes; this one starts its own 1-worker cluster
-    summary = run_curate(config(tmp_path / "one", ClusterConfig(n_workers=1)))
+    # the reference ran on 2 worker processes; this one starts its own 1-worker cluster with 2 threads,
+    # while other processes keep the cores busy
+    with busy_cores():
+        summary = run_curate(config(tmp_path / "one", ClusterConfig(n_workers=1, threads_per_worker=2)))
     assert not summary["errors"]
     assert_same_bytes(reference, tmp_path / "one")
 

@@ -144,3 +144,20 @@ def test_curate_one_fixture_clip_of_each_mano_dataset(trees, tmp_path, prefect_a
         render = store[Unit("render", clip, embodiment="allegro").path]["hand_status"][:]
         assert (render == Reason.OK).any(axis=0).all(), (clip, render)  # every annotated hand gets a robot
         assert (store[Unit("qc", clip, embodiment="allegro").path]["status"][:] == Reason.OK).any(), clip
+
+
+def test_an_object_mesh_edited_in_place_changes_the_clip_fingerprint(trees, tmp_path):
+    """The object's mesh is read by ingest (occlusion depth) and retarget (contact QC): its
+    content, not only the annotation files, identifies the clip."""
+    import shutil
+
+    root = tmp_path / "oakink2"
+    shutil.copytree(trees["oakink2"], root)
+    spec = Oakink2Spec(root=root, sequence=fx.OAK_TOKEN, mano_dir=trees["mano"])
+    before = spec.open().info().fingerprint
+    assert spec.open().info().fingerprint == before  # stable
+    mesh = root / "object_raw" / "align_ds" / "O_box" / "model.obj"
+    import trimesh
+
+    trimesh.load(mesh).apply_scale(1.1).export(mesh)  # same file name, a bigger box
+    assert spec.open().info().fingerprint != before

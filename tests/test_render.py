@@ -413,3 +413,20 @@ def test_a_collected_renderer_leaves_the_current_context_alone(robots_dir):
     assert mine is not None and current() == mine
     np.testing.assert_array_equal(a.render(q[None], T[None], INTR).rgba, before.rgba)
     a.close()
+
+
+def test_scene_nodes_iterate_in_the_order_they_were_added():
+    """pyrender keeps nodes in sets, iterated by memory address: equally distant meshes were drawn,
+    and lights summed, in an order that changed between processes (same inputs, other pixels)."""
+    import pyrender
+
+    from handedit.render.gl import Scene
+
+    scene = Scene()
+    box = pyrender.Mesh.from_trimesh(__import__("trimesh").creation.box())
+    meshes = [scene.add(box, name=f"m{i}") for i in range(40)]
+    lights = [scene.add(pyrender.DirectionalLight(intensity=float(i + 1))) for i in range(6)]
+    assert list(scene.mesh_nodes) == meshes and list(scene.directional_light_nodes) == lights
+    assert list(scene.light_nodes) == lights
+    scene.remove_node(meshes[3])
+    assert list(scene.mesh_nodes) == meshes[:3] + meshes[4:]

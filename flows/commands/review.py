@@ -23,7 +23,7 @@ import argparse
 import sys
 from pathlib import Path
 
-REVIEWS_ATTR = "reviews"
+from handedit.tasks.retarget import REVIEWS as REVIEWS_ATTR  # the attribute the retarget stage declares
 
 
 def _summaries(root, clip: str | None = None, emb: str | None = None,
@@ -55,7 +55,6 @@ def _fmt(c: dict) -> str:
 def cmd_review(args: argparse.Namespace) -> int:
     from handedit.flows.cli import store_path
     from handedit.storage import Unit, open_store
-    from handedit.storage.provenance import PROVENANCE_ATTR
     from handedit.storage.store import now_iso, set_attrs
 
     from handedit.storage import Location
@@ -108,8 +107,8 @@ def cmd_review(args: argparse.Namespace) -> int:
         choice = args.choose
     reviews = reviews_of(c, e)
     reviews[sd] = {"choice": choice, "by": "operator", "at": now_iso()}
-    # the decision, and no current record: the next curate run re-solves this sequence
-    set_attrs(root, Unit("retarget", c, embodiment=e).path, {REVIEWS_ATTR: reviews, PROVENANCE_ATTR: {}})
+    # the decisions are an input of the sequence's retarget key: the next curate run re-solves it
+    set_attrs(root, Unit("retarget", c, embodiment=e).path, {REVIEWS_ATTR: reviews})
     from handedit.storage.shards import invalidate
 
     invalidate(Location(args.dir), [c])

@@ -1,7 +1,9 @@
 """Per-process, per-thread renderer cache and the embodiment-level convenience entry point.
 
 Building a renderer (mesh loading, GL upload) costs seconds, so a Dask worker builds each
-one once; the thread id is part of the key because an EGL context is bound to its thread.
+one once; the thread id is part of the key because an EGL context is bound to its thread,
+and the robot's content (URDF and meshes, ``handedit.digests.robot_digest``) because a
+worker outlives an edit of the files: a mesh changed in place is loaded again.
 """
 
 from __future__ import annotations
@@ -28,9 +30,12 @@ def get_renderer(
 ) -> RobotRenderer:
     """Cached RobotRenderer. ``materials_key`` is a hashable materials mapping: a tuple of
     (link-name regex, (r, g, b, a)) pairs, as ``RobotRenderer(materials=dict(materials_key))``."""
+    from handedit.digests import robot_digest
+
     urdf_path = Path(urdf_path).resolve()
     materials_key = tuple((str(k), tuple(float(c) for c in v)) for k, v in materials_key) if materials_key else None
-    key = (os.getpid(), threading.get_ident(), str(urdf_path), int(width), int(height), materials_key, decimate)
+    key = (os.getpid(), threading.get_ident(), str(urdf_path), robot_digest(urdf_path), int(width), int(height),
+           materials_key, decimate)
     with _LOCK:
         renderer = _CACHE.get(key)
     if renderer is None:

@@ -10,12 +10,18 @@ from ~200 ms to well under 100 ms on llvmpipe without changing the silhouette:
 - clear, resolve and read back only ``gl.region`` when it is set (the robot's screen box):
   the full-frame read-back and its depth conversion were a third of a frame's cost,
 - EGL teardown that does not eglTerminate the process-wide display (which kills other contexts).
+
+``Scene`` is pyrender's scene with its node sets in insertion order: pyrender keeps nodes in
+Python sets, which iterate in memory-address order, so the draw order of equally distant meshes
+(a nail on its finger segment, links sharing an origin) and the order lights are summed in the
+shader changed from one process to the next: the same inputs rendered different pixels.
 """
 
 from __future__ import annotations
 
 import ctypes
 import os
+from collections.abc import Iterable, MutableSet
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
@@ -24,6 +30,48 @@ import pyrender  # noqa: E402
 from pyrender.shader_program import ShaderProgramCache  # noqa: E402
 
 from handedit.render.shaders import shader_dir  # noqa: E402
+
+
+class _InsertionOrdered(MutableSet):
+    """A set that iterates in insertion order (what pyrender's node sets need to be)."""
+
+    def __init__(self, items: Iterable = ()):
+        self._items = dict.fromkeys(items)
+
+    def __contains__(self, item) -> bool:
+        return item in self._items
+
+    def __iter__(self):
+        return iter(self._items)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def add(self, item) -> None:
+        self._items[item] = None
+
+    def discard(self, item) -> None:
+        self._items.pop(item, None)
+
+
+_NODE_SETS = ("_nodes", "_mesh_nodes", "_point_light_nodes", "_spot_light_nodes", "_directional_light_nodes",
+              "_camera_nodes")
+
+
+class Scene(pyrender.Scene):
+    """pyrender's scene, iterated in the order nodes were added: same scene, same pixels."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._order_node_sets()
+
+    def clear(self) -> None:
+        super().clear()
+        self._order_node_sets()
+
+    def _order_node_sets(self) -> None:
+        for name in _NODE_SETS:
+            setattr(self, name, _InsertionOrdered(getattr(self, name)))
 
 
 class _RobotShaderCache(ShaderProgramCache):

@@ -20,7 +20,7 @@ import pyrender  # noqa: E402
 
 from handedit.camera import CV_TO_GL, Intrinsics  # noqa: E402
 from handedit.embodiments.linkage import poly_mimics, update_cfg  # noqa: E402
-from handedit.render.gl import make_offscreen  # noqa: E402
+from handedit.render.gl import Scene, make_offscreen  # noqa: E402
 from handedit.render.model import Rgba, RobotModel, build_model  # noqa: E402
 
 Z_NEAR, Z_FAR = 0.01, 20.0  # metres; 24-bit depth keeps ~µm precision at 0.5 m with these
@@ -127,7 +127,7 @@ class RobotRenderer:
 
         # The camera sits at the scene origin; the scene frame *is* the GL camera frame, so lights
         # placed in it stay fixed relative to the camera and robot poses are CV_TO_GL @ root_pose.
-        self.scene = pyrender.Scene(bg_color=(0.0, 0.0, 0.0, 0.0), ambient_light=(AMBIENT,) * 3)
+        self.scene = Scene(bg_color=(0.0, 0.0, 0.0, 0.0), ambient_light=(AMBIENT,) * 3)
         self._link_nodes: dict[str, pyrender.Node] = {}
         for link in self.model.links:
             prims = [

@@ -15,7 +15,7 @@ keypoints (EgoDex tracks them) initialise the search (the paper's first branch).
 
 Outputs follow the composed URDF: qpos columns in its joint order, ``root_pose`` is
 camera_from_base per frame. The curate flow runs this once per (clip, embodiment): the
-hand-arm retarget unit is sequence-level (see flows/dag.py).
+hand-arm retarget unit is sequence-level (one node per clip: ``tasks/retarget.py``).
 """
 
 from __future__ import annotations

@@ -88,6 +88,8 @@ class SequenceSource:
         s = self.seq
         digests = {p.name: file_sha256(p) for p in s.files}
         ident = {"files": digests, "window": self.window, "size": list(self.size), "meta": s.meta}
+        if s.object_mesh is not None:  # the mesh as loaded (contact QC and occlusion depth read it), by content
+            ident["object_mesh"] = hashlib.sha256(b"".join(np.ascontiguousarray(a).tobytes() for a in s.object_mesh)).hexdigest()
         w, h = self.size
         return ClipInfo(
             clip_id=s.clip_id, n_frames=self.window[1] - self.window[0], height=h, width=w, fps=s.fps,

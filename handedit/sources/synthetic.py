@@ -16,7 +16,6 @@ from __future__ import annotations
 import hashlib
 import os
 import threading
-from collections import OrderedDict
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
@@ -29,6 +28,7 @@ import trimesh
 from scipy.spatial.transform import Rotation, Slerp
 
 from handedit.camera import CV_TO_GL, Intrinsics, look_at
+from handedit.lru import Lru
 from handedit.sources import _hand_model as hm
 from handedit.sources.base import ClipChunk, ClipInfo, SourceError
 from handedit.vision.object_depth import object_depth
@@ -508,8 +508,10 @@ def _build_scene(plan: ClipPlan) -> _Scene:
     """One scene per clip and thread; per frame only node poses and light values change."""
     import pyrender
 
+    from handedit.render.gl import Scene
+
     rng = np.random.default_rng(plan.table_seed + 1)
-    scene = pyrender.Scene(bg_color=(0, 0, 0, 0.0), ambient_light=np.full(3, plan.ambient))
+    scene = Scene(bg_color=(0, 0, 0, 0.0), ambient_light=np.full(3, plan.ambient))
     table = _table_mesh(pyrender, plan.table_seed)
     scene.add(table)
 
@@ -561,9 +563,8 @@ def _pose_scene(s: _Scene, plan: ClipPlan, st: FrameState) -> None:
 
 
 _RENDERERS: dict[tuple[int, int], "pyrender.OffscreenRenderer"] = {}
-_SCENES: "OrderedDict[tuple[int, int, str], _Scene]" = OrderedDict()
-_MAX_SCENES = 4
-_SCENES_LOCK = threading.Lock()
+_SCENES = Lru(max_items=4)  # (process, thread, clip fingerprint) -> _Scene
+_RENDERERS_LOCK = threading.Lock()
 
 
 def _renderer(width: int, height: int) -> "pyrender.OffscreenRenderer":
@@ -574,7 +575,7 @@ def _renderer(width: int, height: int) -> "pyrender.OffscreenRenderer":
     r = _RENDERERS.get(key)
     if r is None:
         r = pyrender.OffscreenRenderer(width, height)
-        with _SCENES_LOCK:
+        with _RENDERERS_LOCK:
             _RENDERERS[key] = r
     r.viewport_width, r.viewport_height = width, height
     return r
@@ -582,16 +583,8 @@ def _renderer(width: int, height: int) -> "pyrender.OffscreenRenderer":
 
 def _scene_for(fingerprint: str, plan: ClipPlan) -> _Scene:
     key = (os.getpid(), threading.get_ident(), fingerprint)
-    with _SCENES_LOCK:
-        s = _SCENES.get(key)
-    if s is None:
-        s = _build_scene(plan)
-    with _SCENES_LOCK:
-        _SCENES[key] = s
-        _SCENES.move_to_end(key)
-        while len(_SCENES) > _MAX_SCENES:
-            _SCENES.popitem(last=False)
-    return s
+    s = _SCENES.get(key, None)
+    return _SCENES.put(key, _build_scene(plan)) if s is None else s
 
 
 @dataclass

@@ -22,8 +22,6 @@ static object revealed correctly agrees with its neighbours to a few grey levels
 
 from __future__ import annotations
 
-import threading
-from collections import OrderedDict
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import ClassVar, Literal, Sequence
@@ -34,6 +32,7 @@ import pydantic
 import xxhash
 
 from handedit.images import pixels
+from handedit.lru import MISSING, Lru
 from handedit.reasons import STATUS_DTYPE, Reason
 from handedit.metrics.similarity import bbox
 from handedit.vision.masks import grow
@@ -94,10 +93,7 @@ def _dilate(mask: np.ndarray, px: int) -> np.ndarray:
     return grow(mask, px) if px > 0 else mask.astype(bool)
 
 
-_HOLES: OrderedDict[tuple[bytes, int], np.ndarray] = OrderedDict()
-_HOLES_BYTES = 64 << 20  # ~120 dilated masks at 960x540
-_HOLES_LOCK = threading.Lock()  # a worker's task threads share the cache
-_HOLES_HELD = [0]  # bytes in _HOLES
+_HOLES = Lru(max_bytes=64 << 20, size=lambda a: a.nbytes)  # ~120 dilated masks at 960x540
 
 
 def _holes(masks: np.ndarray, px: int) -> list[np.ndarray]:
@@ -108,19 +104,11 @@ def _holes(masks: np.ndarray, px: int) -> list[np.ndarray]:
     for mk in masks:
         mk = np.ascontiguousarray(mk, dtype=bool)
         key = (xxhash.xxh3_128_digest(memoryview(mk).cast("B")) + repr(mk.shape).encode(), px)
-        with _HOLES_LOCK:
-            hole = _HOLES.get(key)
-            if hole is not None:
-                _HOLES.move_to_end(key)
+        hole = _HOLES.get(key, None)
         if hole is None:
             hole = _dilate(mk, px)
             hole.flags.writeable = False
-            with _HOLES_LOCK:
-                if key not in _HOLES:  # (another thread may have put it meanwhile)
-                    _HOLES[key] = hole
-                    _HOLES_HELD[0] += hole.nbytes
-                while _HOLES_HELD[0] > _HOLES_BYTES and len(_HOLES) > 1:
-                    _HOLES_HELD[0] -= _HOLES.popitem(last=False)[1].nbytes
+            hole = _HOLES.put(key, hole)
         out.append(hole)
     return out
 
@@ -162,28 +150,24 @@ class _Features:
         """(points in frame pixels, ORB descriptors or None) of frame i."""
         if i not in self._cache:
             g, m, key = self.image(i)
-            if key in _DETECTED:
-                _DETECTED.move_to_end(key)
-            else:
+            found = _DETECTED.get(key, None)
+            if found is None:
                 kps, des = self.orb.detectAndCompute(g, m)
-                _DETECTED[key] = (np.array([k.pt for k in kps], np.float32).reshape(-1, 2) / self.s, des)
-                if len(_DETECTED) > _DETECTED_MAX:
-                    _DETECTED.popitem(last=False)
-            self._cache[i] = _DETECTED[key]
+                found = _DETECTED.put(key, (np.array([k.pt for k in kps], np.float32).reshape(-1, 2) / self.s, des))
+            self._cache[i] = found
         return self._cache[i]
 
     def matches(self, j: int, t: int) -> tuple[np.ndarray, np.ndarray]:
         """Indices (into j's, into t's features) of their mutual nearest neighbours (Hamming),
         in the order of j's features: exactly ``BFMatcher(crossCheck=True).match(j, t)``."""
         kj, kt = self.image(j)[2], self.image(t)[2]
-        if (kt, kj) in _MATCHED:
-            return _reversed(*_MATCHED[kt, kj])
-        if (kj, kt) not in _MATCHED:
-            _MATCHED[kj, kt] = _mutual_nearest(self.get(j)[1], self.get(t)[1])
-            if len(_MATCHED) > _MATCHED_MAX:
-                _MATCHED.popitem(last=False)
-        _MATCHED.move_to_end((kj, kt))
-        return _MATCHED[kj, kt]
+        back = _MATCHED.get((kt, kj), None)
+        if back is not None:
+            return _reversed(*back)
+        found = _MATCHED.get((kj, kt), None)
+        if found is None:
+            found = _MATCHED.put((kj, kt), _mutual_nearest(self.get(j)[1], self.get(t)[1]))
+        return found
 
 
 def _reversed(it: np.ndarray, ij: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -215,12 +199,9 @@ def _mutual_nearest(dj: np.ndarray, dt: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 _ROBUST = {"usac_fast": cv2.USAC_FAST, "ransac": cv2.RANSAC}
-_FITTED: OrderedDict[tuple, np.ndarray | None] = OrderedDict()
-_FITTED_MAX = 50_000  # 3x3 doubles each: a few MB
-_DETECTED: OrderedDict[bytes, tuple[np.ndarray, np.ndarray | None]] = OrderedDict()
-_DETECTED_MAX = 256  # frames; up to 2,000 features (40 B each) per frame: ~20 MB
-_MATCHED: OrderedDict[tuple[bytes, bytes], tuple[np.ndarray, np.ndarray]] = OrderedDict()
-_MATCHED_MAX = 2048  # frame pairs; up to 2,000 matches (8 B each) per pair: ~30 MB
+_FITTED = Lru(max_items=50_000)  # homographies (or None: not trusted), 3x3 doubles each: a few MB
+_DETECTED = Lru(max_items=256)  # frames' ORB points and descriptors; up to 2,000 features (40 B each): ~20 MB
+_MATCHED = Lru(max_items=2048)  # frame pairs' mutual matches; up to 2,000 (8 B each) per pair: ~30 MB
 
 
 def _homography(feats: _Features, j: int, t: int, cfg: RestoreConfig) -> np.ndarray | None:
@@ -228,13 +209,9 @@ def _homography(feats: _Features, j: int, t: int, cfg: RestoreConfig) -> np.ndar
     inverse of t -> j is not used for it: it restored 0.1-0.2 dB worse on the demo clips.)"""
     if (j, t) not in feats.homographies:
         key = (feats.image(j)[2], feats.image(t)[2], cfg.min_inliers, cfg.homography_fit)
-        if key in _FITTED:
-            _FITTED.move_to_end(key)
-            fitted = _FITTED[key]
-        else:
-            fitted = _FITTED[key] = _fit_homography(feats, j, t, cfg)
-            if len(_FITTED) > _FITTED_MAX:
-                _FITTED.popitem(last=False)
+        fitted = _FITTED.get(key)
+        if fitted is MISSING:
+            fitted = _FITTED.put(key, _fit_homography(feats, j, t, cfg))
         feats.homographies[j, t] = fitted
     return feats.homographies[j, t]
 
