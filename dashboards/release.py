@@ -33,6 +33,23 @@ def _png(rgb: np.ndarray, width: int = 240) -> str:
     return f'<img src="data:image/png;base64,{base64.b64encode(buf.tobytes()).decode()}">' if ok else ""
 
 
+def esc(value) -> str:
+    """Any value as inert HTML text (store attributes and manifests are data, not markup)."""
+    return html.escape(str(value), quote=True)
+
+
+def safe_url(url) -> str | None:
+    """A link target for a page: http(s) or a relative path (``javascript:``, ``data:`` and
+    other schemes are dropped), escaped for an attribute."""
+    import urllib.parse
+
+    text = str(url or "").strip()
+    scheme = urllib.parse.urlsplit(text).scheme.lower()
+    if not text or (scheme and scheme not in ("http", "https")):
+        return None
+    return esc(text)
+
+
 def _table(rows: list[dict], columns: list[str]) -> str:
     head = "".join(f"<th>{html.escape(c)}</th>" for c in columns)
     body = "".join("<tr>" + "".join(f"<td>{html.escape(str(r.get(c, '')))}</td>" for c in columns) + "</tr>" for r in rows)
@@ -91,8 +108,8 @@ def render_page(root: zarr.Group, title: str) -> str:
     return f"""<!doctype html><html><head><meta charset=utf-8><title>{html.escape(title)}</title>
 <style>{style}</style></head><body>
 <h1>handedit release / QA: {html.escape(title)}</h1>
-<p>schema {root.attrs.get('schema_version')}, {root.attrs.get('frames_per_chunk')} frames per chunk,
-created {root.attrs.get('created')} by {root.attrs.get('created_by')}</p>
+<p>schema {esc(root.attrs.get('schema_version'))}, {esc(root.attrs.get('frames_per_chunk'))} frames per chunk,
+created {esc(root.attrs.get('created'))} by {esc(root.attrs.get('created_by'))}</p>
 <h2>Shard runs (last 10)</h2>{_table(run_rows, ['shard', 'started', 'finished', 'complete', 'chunks ran/skipped/failed'])}
 <h2>Kept frames (QC OK)</h2>{_table(kept_table(root), ['clip', 'embodiment', 'frames', 'kept', 'kept %'])}
 <h2>Frames per stage and status</h2>{_table(status_counts(root).to_dict(orient='records'), ['stage', 'status', 'frames'])}

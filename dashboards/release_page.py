@@ -17,7 +17,7 @@ import json
 
 import numpy as np
 
-from handedit.dashboards.release import _png, _table
+from handedit.dashboards.release import _png, _table, esc, safe_url
 from handedit.images import decode_rgb
 from handedit.release.samples import sample_key
 from handedit.storage import Location
@@ -65,17 +65,18 @@ def render_release_page(loc: Location, version: str) -> str:
     per = [{"by": k, "name": name, "pairs": n} for k in ("track", "dataset", "embodiment") for name, n in sheet["counts"][k].items()]
     changes = [{"change": k, "pairs": len(log[k]), "first": ", ".join(log[k][:5])} for k in ("added", "removed", "changed")]
     links = m.get("links") or {}
-    link_html = " | ".join(f'<a href="{html.escape(u)}">{html.escape(k)}</a>' for k, u in links.items() if u) or "none recorded"
-    shards = [{"shard": s["key"][:12], "pairs": s["pairs"], "MB": f"{s['bytes'] / 1e6:.2f}", "sha256": s["sha256"][:16],
-               "reused": s["reused"]} for s in m["shards"]]
+    link_html = " | ".join(f'<a href="{safe_url(u)}">{esc(k)}</a>' if safe_url(u) else f"{esc(k)}: {esc(u)}"
+                           for k, u in links.items() if u) or "none recorded"
+    shards = [{"shard": str(s["key"])[:12], "pairs": s["pairs"], "MB": f"{float(s['bytes']) / 1e6:.2f}",
+               "sha256": str(s["sha256"])[:16], "reused": s["reused"]} for s in m["shards"]]
     style = ("body{font-family:sans-serif;margin:1.5em}table{border-collapse:collapse;margin-bottom:1em}"
              "td,th{border:1px solid #ccc;padding:2px 6px;font-size:13px}.trip{display:inline-block;margin:4px}")
     return f"""<!doctype html><html><head><meta charset=utf-8><title>handedit release {html.escape(version)}</title>
 <style>{style}</style></head><body>
 <h1>handedit release {html.escape(version)}</h1>
-<p id=counts data-pairs="{counts['pairs']}" data-shards="{counts['shards']}">{counts['pairs']} pairs in {counts['shards']}
-shards ({counts['shards_reused']} reused from {html.escape(str(m['parent'] or '-'))}); created {html.escape(m['created'])}
-by {html.escape(m['code_version'])}</p>
+<p id=counts data-pairs="{esc(counts['pairs'])}" data-shards="{esc(counts['shards'])}">{esc(counts['pairs'])} pairs in
+{esc(counts['shards'])} shards ({esc(counts['shards_reused'])} reused from {esc(m['parent'] or '-')}); created
+{esc(m['created'])} by {esc(m['code_version'])}</p>
 <p>links: {link_html}</p>
 <p id=qa-check></p>
 <h2>Pairs</h2>{_table(per, ['by', 'name', 'pairs'])}

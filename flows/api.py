@@ -41,6 +41,15 @@ def configured_url() -> str | None:
     return str(url) if url else None
 
 
+_TEMPORARY: list[str] = []  # the URL of the temporary API this process started, while it runs
+
+
+def api_is_temporary() -> bool:
+    """Whether this run's Prefect API is the temporary one ``run_api`` started (its pages
+    are gone when the command exits)."""
+    return bool(_TEMPORARY)
+
+
 def run_url() -> str | None:
     """The Prefect UI page of the current flow run (None without a UI, e.g. a temporary API)."""
     try:
@@ -118,11 +127,13 @@ def run_api():
     timeout = float(os.environ.get("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", 180))
     server = RunServer(timeout).start()
     os.environ["PREFECT_API_URL"] = server.api_url  # inherited by the local cluster's workers
+    _TEMPORARY.append(server.api_url)
     try:
         with temporary_settings({PREFECT_API_URL: server.api_url}):
             yield server.api_url
     finally:
         _drain()  # the run's last logs and events reach the server before it stops
+        _TEMPORARY.remove(server.api_url)
         os.environ.pop("PREFECT_API_URL", None)
         server.stop()
 

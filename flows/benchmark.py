@@ -27,7 +27,7 @@ from handedit.reasons import Reason
 from handedit.storage import Location, Unit, open_store
 from handedit.storage.benchmark import (BenchDir, BenchIOError, append_jsonl, decode_image, encode_png, iter_jsonl, read_json,
                                read_image, write_bytes, write_image, write_json, write_jsonl, write_text)
-from handedit.storage.integrity import require_complete
+from handedit.storage.integrity import VerifiedReads, require_complete
 from handedit.storage.layout import SCOPE_MASK
 from handedit.storage.store import now_iso, read_array
 
@@ -83,6 +83,7 @@ class StoreItems:
 
     def __init__(self, root, clips, pseudo_gt: str = "harmonized"):
         self.root, self.clips, self.pseudo_gt = root, clips, pseudo_gt
+        self.reads = VerifiedReads(root)
         self.embodiments = {e: get_embodiment(e).track for c in clips
                             for e in (root[f"clips/{c}/embodiments"].group_keys() if f"clips/{c}/embodiments" in root else [])}
 
@@ -90,16 +91,16 @@ class StoreItems:
         return _kept(self.root, clip, emb)
 
     def item(self, clip: str, emb: str, frame: int, scope: str):
-        """(src, gt, human mask, robot mask, object mask or None) of one kept pair."""
-        root = self.root
-        src_grp = root[Unit("ingest", clip).path]
-        humans = read_array(root[Unit("segment", clip).path][SCOPE_MASK[scope]], frame)  # (S,H,W) per hand
-        obj = read_array(src_grp["object_mask"], frame) if "object_mask" in src_grp else None
+        """(src, gt, human mask, robot mask, object mask or None) of one kept pair, each
+        chunk re-hashed against its record first (``storage.integrity.VerifiedReads``)."""
+        root, reads, src = self.root, self.reads, Unit("ingest", clip)
+        humans = reads.frame(Unit("segment", clip), SCOPE_MASK[scope], frame)  # (S,H,W) per hand
+        obj = reads.frame(src, "object_mask", frame) if "object_mask" in root[src.path] else None
         stage = "harmonize" if self.pseudo_gt == "harmonized" else "composite"
-        gt = read_array(root[Unit(stage, clip, embodiment=emb).path]["image"], frame)
-        robots = read_array(root[Unit("composite", clip, embodiment=emb).path]["robot_mask"], frame)
+        gt = reads.frame(Unit(stage, clip, embodiment=emb), "image", frame)
+        robots = reads.frame(Unit("composite", clip, embodiment=emb), "robot_mask", frame)
         replaced = _replaced(root, clip, emb, frame)
-        return read_array(src_grp["frames"], frame), gt, humans[replaced].any(0), robots[replaced].any(0), obj
+        return reads.frame(src, "frames", frame), gt, humans[replaced].any(0), robots[replaced].any(0), obj
 
 
 class ReleaseItems:

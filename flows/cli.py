@@ -60,6 +60,8 @@ def _build_config(args: argparse.Namespace):
     resize = _size(args.resize) if args.resize else None
     window = ":" in str(args.frames)
     if args.demo:
+        if args.clips < 1:
+            raise SystemExit(f"handedit curate: --clips {args.clips}: give 1 or more synthetic clips")
         n = 48 if window else _count(args.frames)
         clips += make_clip_specs(args.clips, seed=args.seed, n_frames=n, width=args.width, height=args.height)
     for video in args.video or []:
@@ -136,9 +138,14 @@ def cmd_curate(args: argparse.Namespace) -> int:
 
     from handedit.flows.curate import run_curate
 
+    from handedit.flows.config import CurateConfig, explain
+
     try:
         config = _build_config(args)
-    except (ValidationError, ValueError) as exc:
+    except ValidationError as exc:  # one line per bad value, named by where it is (no pydantic dump)
+        print(f"handedit curate: invalid configuration ({exc.title}):\n{explain(exc, CurateConfig)}", file=sys.stderr)
+        return 2
+    except ValueError as exc:
         print(f"handedit curate: invalid configuration:\n{exc}", file=sys.stderr)
         return 2
     what = " + ".join([*([f"{len(config.clips)} clip(s)"] if config.clips else []),
@@ -157,7 +164,8 @@ def cmd_curate(args: argparse.Namespace) -> int:
         return 2
     print_summary(summary)
     if summary.get("clips", {}).get("curated", 1) == 0:
-        print("handedit curate: nothing was curated: no clip could be read (see the reasons above)", file=sys.stderr)
+        why = "see the errors above" if summary.get("errors") else "no clip could be read (see the reasons above)"
+        print(f"handedit curate: nothing was curated: {why}", file=sys.stderr)
         return 1
     result = summary.get("outcome") or {}
     if result.get("failed"):
@@ -168,16 +176,24 @@ def cmd_curate(args: argparse.Namespace) -> int:
 
 def print_summary(summary: dict) -> None:
     print(f"\nstore:          {summary['store']}")
+    links = summary.get("links", {})
     print(f"dask dashboard: {summary['dashboard'] or '(not available)'}")
+    if (links.get("Dask dashboard") or {}).get("note"):
+        print(f"                ({links['Dask dashboard']['note']})")
     print(f"prefect run:    {summary.get('prefect_run') or '(no Prefect UI: set PREFECT_API_URL to a server)'}")
+    if (links.get("Prefect run") or {}).get("note"):
+        print(f"                ({links['Prefect run']['note']})")
     sh = summary.get("shards", {})
     print(f"shards:         {sh.get('ran', 0)} ran, {sh.get('skipped', 0)} complete (skipped), {sh.get('held', 0)} held by "
           f"another driver, {sh.get('incomplete', 0)} left incomplete (re-run to retry)")
     for shard, who in summary.get("held_by_others", {}).items():
         print(f"  shard {shard} is held by {who}: run again later, or --take-over once that driver is gone")
-    print("\nchunks per stage (ran / skipped / failed):")
-    for stage, c in summary["stages"].items():
-        print(f"  {stage:<20} {c['ran']:>5} {c['skipped']:>8} {c['failed']:>7}")
+    if summary["stages"]:
+        print("\nchunks per stage (ran / skipped / failed):")
+        for stage, c in summary["stages"].items():
+            print(f"  {stage:<20} {c['ran']:>5} {c['skipped']:>8} {c['failed']:>7}")
+    elif not summary.get("shards", {}).get("ran"):
+        print("\nno chunk ran: every shard was complete for this configuration")
     print("\nframes per stage and status:")
     for row in summary["status"]:
         print(f"  {row['stage']:<20} {row['status']:<18} {row['frames']:>6}")
@@ -350,10 +366,10 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:  # disk full, read-only, permissions: which file, and what to do
         import errno
 
-        what = exc.filename or ""
+        what = f" ({exc.filename})" if exc.filename else " (the run's --out)"
         fix = ("free space there and run the same command again (committed chunks are kept)"
                if exc.errno == errno.ENOSPC else "check the path and its permissions, then run again")
-        print(f"handedit {args.command}: {exc.strerror or exc} {what}: {fix}", file=sys.stderr)
+        print(f"handedit {args.command}: {exc.strerror or exc}{what}: {fix}", file=sys.stderr)
         return 2
 
 

@@ -19,6 +19,7 @@ shard with failures stays incomplete, so the next run retries exactly what faile
 from __future__ import annotations
 
 import contextvars
+import logging
 from collections import Counter
 import json
 import os
@@ -44,13 +45,25 @@ from handedit.storage import Location, create_or_open_store, open_store
 from handedit.storage.integrity import chunk_object_count, clips_missing_objects
 from handedit.storage.layout import SCHEMA_VERSION, STAGES
 from handedit.storage.ledger import read_ledger, status_counts
-from handedit.storage.shards import (INDEX, LEDGER, is_complete, new_holder, read_manifest, release,
+from handedit.storage.shards import (INDEX, LEDGER, has_partitions, is_complete, new_holder, read_manifest, release,
                                      renew, try_claim, write_manifest, write_partition, write_run_log)
 from handedit.storage.store import CorruptChunk, jsonable, now_iso
 from handedit.storage.summary import index_rows
 from handedit.tasks.clip import ClipJob, EmbodimentJob, curate_clip, curate_embodiment, stage_version_params
+from handedit.tasks.common import store_full
 from handedit.tasks import STAGES as STAGE_DECLARATIONS
 
+
+
+def run_links(dashboard: str | None, prefect_run: str | None, local_cluster: bool) -> dict:
+    """The run's monitoring links, each with what an operator should know of how long it lives
+    (kept in every shard's run log; releases keep only lasting links)."""
+    from handedit.flows.api import api_is_temporary
+
+    gone = "gone when this command exits"
+    return {"Dask dashboard": {"url": dashboard, "note": f"this run's LocalCluster: {gone}" if local_cluster and dashboard else ""},
+            "Prefect run": {"url": prefect_run, "note": f"a temporary Prefect API: {gone}" if api_is_temporary() and prefect_run
+                            else ""}}
 
 
 def code_version() -> str:
@@ -117,7 +130,7 @@ def _merge(into: dict, stages: dict) -> None:
 
 @flow(name="curate-shard", flow_run_name="shard-{shard_id}")
 def curate_shard(config_json: str, shard_id: str, specs_json: list[str], embodiments: list[dict], run_id: str,
-                 digest: str, code: str) -> dict:
+                 digest: str, code: str, links: dict | None = None) -> dict:
     """One shard: 1 + E tasks per clip on the run's cluster, then the shard's bookkeeping."""
     from handedit.sources import parse_spec
 
@@ -163,16 +176,26 @@ def curate_shard(config_json: str, shard_id: str, specs_json: list[str], embodim
         write_partition(loc, LEDGER, shard_id, ledger)
     except CorruptChunk as exc:  # bytes of a unit no task of this run rewrote: verify --repair names them
         errors.append(str(exc))
+    except OSError as exc:  # a full disk fails the shard (and the run), named
+        if (full := store_full(exc, f"the index and ledger of shard {shard_id}")) is None:
+            raise
+        errors.append(str(full))
     # complete: nothing to retry. Chunks an embodiment without assets rejects are the plan's
     # own outcome (they fail identically until its assets, hence the run key, change).
     complete = not task_failures and not errors
     log = {"run": run_id, "shard": shard_id, "started": started, "finished": now_iso(), "stages": stages,
            "errors": errors[:50], "task_failures": task_failures, "clip_errors": source_errors, "complete": complete,
-           "recovered": recovered, "recomputed": dict(recomputed)}
-    write_run_log(loc, shard_id, run_id, log)
-    write_manifest(loc, shard_id, {"shard": shard_id, "clips": clips, "digest": digest, "complete": complete,
-                                   "embodiments": embodiments, "updated": now_iso(), "run": run_id, "stages": stages,
-                                   "objects": {c: chunk_object_count(loc, c) for c in ok_clips} if complete else {}})
+           "recovered": recovered, "recomputed": dict(recomputed), "links": links or {}}
+    try:
+        write_run_log(loc, shard_id, run_id, log)
+        write_manifest(loc, shard_id, {"shard": shard_id, "clips": clips, "digest": digest, "complete": complete,
+                                       "embodiments": embodiments, "updated": now_iso(), "run": run_id, "stages": stages,
+                                       "objects": {c: chunk_object_count(loc, c) for c in ok_clips} if complete else {}})
+    except OSError as exc:
+        if (full := store_full(exc, f"the run log and manifest of shard {shard_id}")) is None:
+            raise
+        log["errors"].append(str(full))
+        log["complete"] = False
     return log
 
 
@@ -219,14 +242,25 @@ class _Leases:
         with self._lock:
             c = self.claims.pop(shard, None)
         if c is not None:
-            release(self.loc, c)
+            self._release(c)
 
     def close(self) -> None:
         self._stop.set()
         with self._lock:
             claims = list(self.claims.values())
         for c in claims:
-            release(self.loc, c)
+            self._release(c)
+
+    def _release(self, claim) -> None:
+        """Give a claim back; on a full disk it stays, and lapses with its lease (or its driver's
+        process) as a claim of a dead driver does."""
+        try:
+            release(self.loc, claim)
+        except OSError as exc:
+            if store_full(exc) is None:
+                raise
+            logging.getLogger(__name__).warning("shard %s: claim not released (%s); it lapses with its lease",
+                                                claim.shard, exc.strerror or exc)
 
 
 def _watch_workers(address: str, timeout_s: float, stop: threading.Event, lost: list) -> None:
@@ -280,9 +314,12 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
     with config.cluster.connect() as address:
         summary["dashboard"] = link = dashboard_link(address)
         summary["prefect_run"] = ui = run_url()
-        logger.info("Dask dashboard: %s; Prefect run: %s", link, ui)
+        summary["links"] = links = run_links(link, ui, local_cluster=not config.cluster.address)
+        for name, entry in links.items():  # one link per line: no punctuation joins a URL
+            logger.info("%s: %s%s", name, entry["url"] or "(not available)", f"  ({entry['note']})" if entry["note"] else "")
         if progress:
-            tqdm.write(f"Dask dashboard: {link or '(not available)'}\nPrefect run:    {ui or '(no UI)'}")
+            tqdm.write("\n".join(f"{name + ':':<16}{e['url'] or '(not available)'}{'  (' + e['note'] + ')' if e['note'] else ''}"
+                                 for name, e in links.items()))
         leases = _Leases(loc, config.claim_lease_s)
         stop, lost = threading.Event(), []
         watchdog = threading.Thread(target=_watch_workers, args=(address, config.cluster.worker_timeout, stop, lost), daemon=True)
@@ -317,7 +354,8 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
             for shard in iter_shards(config.sources, config.clips, config.shard_size):
                 digest = shard.digest(key)
                 manifest = read_manifest(loc, shard.id)
-                if is_complete(manifest, digest) and not _objects_missing(loc, manifest, config.check_skipped_shards):
+                if is_complete(manifest, digest) and has_partitions(loc, shard.id) \
+                        and not _objects_missing(loc, manifest, config.check_skipped_shards):
                     summary["shards"]["skipped"] += 1
                     bar.update()
                     continue
@@ -338,9 +376,15 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
                     bar.update()
                     continue
                 leases.add(claim)
-                args = (config_json, shard.id, [s.model_dump_json() for s in shard.specs], emb_dicts, holder, digest, version)
+                args = (config_json, shard.id, [s.model_dump_json() for s in shard.specs], emb_dicts, holder, digest, version,
+                        links)
                 in_flight[shard.id] = pool.submit(contextvars.copy_context().run, shard_flow, *args)
             collect(block=True)
+        except OSError as exc:  # the driver's own bookkeeping on a full disk: a failed run, named, no traceback
+            if (full := store_full(exc, "the run's shard bookkeeping")) is None:
+                raise
+            summary["errors"].append(str(full))
+            summary["shards"]["incomplete"] += 1
         finally:
             stop.set()
             pool.shutdown(wait=True)
@@ -379,7 +423,8 @@ def publish_artifacts(summary: dict) -> None:
              f"- kept: {res['kept']} of {res['pairs']} frame x embodiment pairs ({res['kept_share']:.1%})",
              f"- store: `{summary.get('store')}`",
              f"- shards: {summary.get('shards')}",
-             f"- Dask dashboard: {summary.get('dashboard') or '(none)'} (a local cluster's is gone when the run ends)",
+             *(f"- {name}: {e['url'] or '(none)'}" + (f" ({e['note']})" if e["note"] else "")
+               for name, e in summary.get("links", {}).items()),
              f"- QA page: `handedit dashboard {summary.get('store')}`"]
     create_markdown_artifact("\n".join(lines), key="curate-outcome", description="the run's verdict, store and links")
 
@@ -426,6 +471,16 @@ def _finish(loc: Location, summary: dict, started: str) -> dict:
     return jsonable(summary)
 
 
+def _source_roots(config: CurateConfig) -> list[Path]:
+    """The local folders the run reads its clips from (dataset trees, explicit clips' roots)."""
+    roots = [Path(t.root) for t in config.sources if getattr(t, "root", None)]
+    for spec in config.clips:
+        where = getattr(spec, "root", None) or (Path(spec.path).parent if getattr(spec, "path", None) else None)
+        if where is not None:
+            roots.append(Path(where))
+    return list(dict.fromkeys(roots))
+
+
 def preflight(config: CurateConfig) -> None:
     """Cheap checks that would otherwise fail after the cluster started, each with the fix."""
     from handedit.storage.layout import safe_name
@@ -440,6 +495,11 @@ def preflight(config: CurateConfig) -> None:
     loc = Location(config.out)
     if loc.is_local:
         run_dir = Path(loc.root)
+        for root in _source_roots(config):
+            if run_dir.resolve().is_relative_to(root.resolve()):
+                logging.getLogger(__name__).warning(
+                    "--out %s is inside the source tree %s: the run's files will sit among the dataset's (and a later "
+                    "tree scan may meet them); a folder outside it is safer", config.out, root)
         if run_dir.is_file() or (Path(loc.path(loc.store_name)).is_file()):
             raise PreflightError(f"--out {config.out} is a file; give a folder for the run (it holds handedit.zarr)")
         try:

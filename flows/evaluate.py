@@ -127,8 +127,10 @@ def _write_toolkit(cfg: "EvaluateConfig", records: list[dict], rows: list[dict],
     skipped_cols = sorted({c for name, cols in NEURAL.items() if name in missing for c in cols}
                           | ({"VLM-SC", "VLM-PQ", "VLM"} if cfg.judge is None else set()))
     errors = [{"id": r["id"], "error": r["error"]} for r in table if r.get("error")]
+    judge_failures = [{"id": r["id"], "error": r["vlm_error"]} for r in table if not r.get("error") and r.get("vlm_error")]
     summary["_meta"].update(protocol="toolkit", editor=cfg.editor, manifest=str(cfg.manifest), finished=now_iso(),
                             skipped=skipped_cols, n_items=len(rows), n_errors=len(errors), errors=errors,
+                            n_judge_failures=len(judge_failures), judge_failures=judge_failures,
                             n_manifest_errors=len(line_errors),
                             vlm_protocol=cfg.judge.protocol if cfg.judge else "none")
     cfg.out.mkdir(parents=True, exist_ok=True)
@@ -143,7 +145,10 @@ def _write_toolkit(cfg: "EvaluateConfig", records: list[dict], rows: list[dict],
     write_json(cfg.out / REPORT_SUMMARY_JSON, project)
     for col in skipped_cols:
         logger.error("toolkit protocol: %s left empty (its encoder or judge is missing)", col)
-    logger.info("%s: %d items scored, %d errors (toolkit protocol)", cfg.editor, len(rows) - len(errors), len(errors))
+    for f in judge_failures[:10]:
+        logger.error("judge failed on %s: %s", f["id"], f["error"])
+    logger.info("%s: %d items scored, %d errors, %d judge failures (toolkit protocol)", cfg.editor, len(rows) - len(errors),
+                len(errors), len(judge_failures))
     return summary
 
 

@@ -156,7 +156,8 @@ def release(cfg: ReleaseConfig) -> dict:
     parent = latest(loc)
     parent_manifest = read_release(loc, parent) if parent else None
     parent_pairs = read_pairs(loc, parent) if parent else None
-    reusable = {s["key"]: s for s in (parent_manifest or {}).get("shards", [])}
+    # a parent's shard is reused only if its bytes were checked against the records when it was written
+    reusable = {s["key"]: s for s in (parent_manifest or {}).get("shards", []) if s.get("verified")}
     pairs, sources, jobs, curated = [], [], [], []
     for store in cfg.sources:
         src = Location(store)
@@ -172,10 +173,13 @@ def release(cfg: ReleaseConfig) -> dict:
             if key not in reusable:
                 jobs.append(ShardJob(cfg.out, src.store_url, key, tuple(p.meta() for p in members)))
     shards = {k: {**_shard_entry(s), "reused": True} for k, s in reusable.items()}
-    links = {"Prefect run": run_url(), "Dask dashboard": None}
+    from handedit.flows.api import api_is_temporary
+
+    # a release is permanent: it keeps only links that outlive this command
+    links = {"Prefect run": None if api_is_temporary() else run_url(), "Dask dashboard": None}
     if jobs:
         with cfg.cluster.connect() as address:
-            links["Dask dashboard"] = dashboard_link(address)
+            links["Dask dashboard"] = dashboard_link(address) if cfg.cluster.address else None
             for res in write_shards.with_options(task_runner=DaskTaskRunner(address=address))(jobs):
                 shards[res["key"]] = {**_shard_entry(res), "reused": False}
     used = list(dict.fromkeys(k for _, k in pairs))
@@ -224,7 +228,7 @@ SHARD_FIELDS = ("key", "path", "sha256", "bytes", "pairs")
 
 
 def _shard_entry(info: dict) -> dict:
-    return {k: info[k] for k in SHARD_FIELDS}
+    return {**{k: info[k] for k in SHARD_FIELDS}, "verified": bool(info.get("verified"))}
 
 
 def _status(curated: list) -> pd.DataFrame:
@@ -238,10 +242,12 @@ def _ledger(curated: list) -> pd.DataFrame:
 
 
 def _changelog_md(version: str, parent: str | None, changes: dict) -> str:
-    out = [f"# {version} against {parent or '(no parent: first release)'}", ""]
+    from handedit.markdown import md
+
+    out = [f"# {md(version)} against {md(parent or '(no parent: first release)')}", ""]
     for kind in ("added", "removed", "changed"):
         ids = changes[kind]
-        out += [f"## {kind}: {len(ids)}", ""] + [f"- {i}" for i in ids[:1000]]
+        out += [f"## {kind}: {len(ids)}", ""] + [f"- {md(i)}" for i in ids[:1000]]
         if len(ids) > 1000:
             out.append(f"- ... {len(ids) - 1000} more (changelog.json)")
         out.append("")

@@ -5,21 +5,27 @@ token: any of it can end up in ``records.jsonl``, provenance, the ledger or a te
 ``redact`` replaces every known secret value (the editor's and judge's configured keys,
 registered with ``register``, and the values of ``*_API_KEY``, ``*_TOKEN``, ``*_SECRET*``
 and ``*_PASSWORD`` environment variables) and any ``Authorization`` / ``Bearer`` value by
-``[redacted]``. ``install_log_filter`` applies it to every log record the process creates.
+``[redacted]``. A secret is found in any letter case, JSON- or ``\\u``-escaped, and in
+part: any run of 8 of its characters (for secrets of 12 characters or more), with the token
+characters around it. ``install_log_filter`` applies it to every log record the process
+creates.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import re
 import threading
+from functools import lru_cache
 
 MARK = "[redacted]"
 _SECRET_ENV = re.compile(r"(API_KEY|TOKEN|SECRET|PASSWORD)", re.IGNORECASE)
 _HEADER = re.compile(r"(?i)(authorization['\"]?\s*[:=]\s*['\"]?)(?:(bearer|basic|token)\s+)?[^\s'\",}]+")
 _BEARER = re.compile(r"(?i)\b(bearer)\s+[A-Za-z0-9._~+/=-]{6,}")
 _MIN_LEN = 6  # shorter values (e.g. "1", "true") would redact ordinary text
+_PART = 8  # a run of this many of a secret's characters is redacted (secrets of 12 or more characters)
 
 _registered: set[str] = set()
 _lock = threading.Lock()
@@ -46,10 +52,27 @@ def redact(text, extra=()) -> str:
         return text
     out = str(text)
     register(*extra)
-    for s in known_secrets():
-        out = out.replace(s, MARK)
+    secrets = tuple(known_secrets())
+    if secrets:
+        out = _pattern(secrets).sub(MARK, out)
     out = _HEADER.sub(lambda m: m.group(1) + (m.group(2) + " " if m.group(2) else "") + MARK, out)
     return _BEARER.sub(lambda m: f"{m.group(1)} {MARK}", out)
+
+
+def _forms(secret: str) -> list[str]:
+    """How a secret can appear in text: as is, JSON-escaped, \\u-escaped (either case)."""
+    escaped = "".join(f"\\u{ord(c):04x}" for c in secret)
+    return [secret, json.dumps(secret)[1:-1], escaped, escaped.upper().replace("\\U", "\\u")]
+
+
+@lru_cache(maxsize=16)
+def _pattern(secrets: tuple[str, ...]) -> re.Pattern:
+    """One case-insensitive pattern for every form of every secret, and for runs of ``_PART``
+    of a long secret's characters with the token characters around them."""
+    whole = sorted({re.escape(f) for s in secrets for f in _forms(s)}, key=len, reverse=True)
+    parts = sorted({re.escape(s[i:i + _PART]) for s in secrets if len(s) >= 12 for i in range(len(s) - _PART + 1)})
+    alts = whole + ([r"[\w.~+/=-]*(?:" + "|".join(parts) + r")[\w.~+/=-]*"] if parts else [])
+    return re.compile("|".join(alts), re.IGNORECASE)
 
 
 def redact_obj(obj):

@@ -25,6 +25,7 @@ import json
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import zarr
 
 from handedit.storage.layout import Unit, clip_path
@@ -165,10 +166,89 @@ def repair(loc, problems: list[Problem]) -> dict:
     return {"records_dropped": sum(len(c) for c in by_unit.values()), "units": len(by_unit), "shards": shards}
 
 
+class VerifiedReads:
+    """Frames read for publishing (``release``, ``bench build``): the chunk holding a frame is
+    read whole and re-hashed against its record before any of its frames is returned, so
+    bytes changed after they were written (still decodable) are refused, never published.
+    The cost belongs there: every published pair is read anyway, and a chunk is read once
+    for all its frames (the last chunk per array is kept)."""
+
+    def __init__(self, root: zarr.Group):
+        self.root = root
+        self._records: dict[Unit, dict[int, ChunkRecord]] = {}
+        self._chunk: dict[tuple[str, str], tuple[int, int, np.ndarray]] = {}
+
+    def frame(self, unit: Unit, name: str, t: int) -> np.ndarray:
+        from handedit.storage.store import CorruptChunk, StoreError, digest, read_array
+
+        held = self._chunk.get((unit.path, name))
+        if held is None or not held[0] <= t < held[1]:
+            if unit not in self._records:
+                self._records[unit] = read_records(self.root, unit)
+            rec = next((r for r in self._records[unit].values() if r.start <= t < r.stop), None)
+            arr = self.root[unit.path][name]
+            if rec is None or name not in rec.outputs:
+                raise StoreError(f"{arr.path} frame {t}: no provenance record vouches for it; run `handedit curate` "
+                                 f"again before publishing")
+            data = read_array(arr, slice(rec.start, rec.stop))
+            got = digest(data, like=rec.outputs[name])
+            if got != rec.outputs[name]:
+                raise CorruptChunk(arr.path, rec.start, rec.stop, f"its bytes changed after they were written (digest "
+                                   f"{got[:12]} != recorded {rec.outputs[name][:12]})",
+                                   _object_path(arr, rec.start, rec.stop))
+            held = self._chunk[(unit.path, name)] = (rec.start, rec.stop, data)
+        return held[2][t - held[0]]
+
+
+def _object_path(arr: zarr.Array, start: int, stop: int) -> str:
+    keys = object_keys(arr, start, stop)
+    root = getattr(arr.store, "root", None) or getattr(arr.store, "path", "")
+    return f"{str(root).rstrip('/')}/{keys[0]}" if keys else ""
+
+
+def root_damaged(loc) -> bool:
+    """Whether the store's root ``zarr.json`` is there but does not parse."""
+    data = loc.read_bytes(f"{loc.store_name}/zarr.json")
+    try:
+        json.loads(data) if data is not None else None
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        return True
+    return False
+
+
+def rebuild_root(loc) -> dict:
+    """Write the root ``zarr.json`` anew from what the groups below still say: the schema
+    this code writes, ``frames_per_chunk`` from a status array's chunking (every unit has
+    one), and a note in place of the creation time. Raises ``StoreError`` when no unit is
+    left to read it from."""
+    from handedit.storage.layout import SCHEMA_VERSION
+    from handedit.storage.store import StoreError, now_iso
+
+    for path in sorted(p for p in loc.find(f"{loc.store_name}/clips") if p.endswith("/status/zarr.json")):
+        try:
+            meta = json.loads(loc.read_bytes(f"{loc.store_name}/clips/{path}"))
+            f = int(meta["chunk_grid"]["configuration"]["chunk_shape"][0])
+        except (TypeError, ValueError, KeyError, IndexError, json.JSONDecodeError):
+            continue
+        attrs = {"schema_version": SCHEMA_VERSION, "frames_per_chunk": f, "created": "unknown",
+                 "created_by": f"rebuilt by handedit verify --repair at {now_iso()}"}
+        loc.write_json(f"{loc.store_name}/zarr.json", {"zarr_format": 3, "node_type": "group", "attributes": attrs})
+        return attrs
+    raise StoreError(f"{loc.store_url}/zarr.json is damaged and no unit is left to rebuild it from: curate into a new --out")
+
+
 def require_complete(loc, clips, command: str) -> None:
-    """Publishing reads only data the records vouch for: a ``StoreError`` listing what is
-    missing (presence check) when any of it is gone."""
+    """Publishing reads only finished runs and data the records vouch for: a ``StoreError``
+    naming the shards a run left incomplete (failed chunks or tasks, a full disk: their
+    rejections are not the data's), or listing what is missing (presence check)."""
+    from handedit.storage.shards import read_manifest, shard_ids
     from handedit.storage.store import StoreError
+
+    open_shards = [s for s in shard_ids(loc) if not (read_manifest(loc, s) or {}).get("complete")]
+    if open_shards:
+        raise StoreError(f"{command}: {len(open_shards)} shard(s) of {loc.store_url} were left incomplete by their last "
+                         f"curate run ({', '.join(open_shards[:5])}); run `handedit curate` again until it completes, "
+                         f"then {command}")
 
     problems = verify(loc, clips=clips)
     if problems:

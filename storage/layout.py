@@ -32,6 +32,7 @@ owns it (a clip's task its clip units, an embodiment task its embodiment units).
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 SCHEMA_VERSION = 2  # 2: hand axis, registration stage, shard bookkeeping beside the store
@@ -89,9 +90,13 @@ class Unit:
         return f"{self.stage}[{self.clip}{'/' + extra if extra else ''}]"
 
 
+_SAFE = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]*")
+
+
 def safe_name(kind: str, name: str) -> str:
-    """One path segment of the store or a benchmark folder: never empty, no '/', no dotfile."""
-    if not name or "/" in name or name.startswith("."):
+    """One path segment of the store or a benchmark folder: letters, digits, '-', '_', '.',
+    never empty, not starting with '.' (what a URL, a shell and a tar member keep as is)."""
+    if not isinstance(name, str) or not _SAFE.fullmatch(name):
         raise ValueError(f"invalid {kind} {name!r}: use letters, digits, '-', '_', '.' (no '/', not starting with '.')")
     return name
 

@@ -131,7 +131,7 @@ def _input_label(name: str) -> str:
     if "@" in name:  # an attribute: <unit path>@<name>
         return name.rsplit("@", 1)[1]
     return {"robot": "robot URDF or meshes", "clip": "clip facts", "versions": "config versions",
-            "source": "source content"}.get(name, name.replace("model:", "model file ").replace("setting:", "setting "))
+            "source": "source content"}.get(name, name.replace("model:", "model file "))
 
 
 def changed_inputs(old: dict, version: int, params: dict, inputs: dict[str, str]) -> str:

@@ -179,8 +179,18 @@ def release(loc: Location, claim: Claim) -> None:
 # ----------------------------------------------------------------------------- partitions
 
 
+def partition_rel(kind: str, shard: str) -> str:
+    return f"{kind}/{safe_name('shard id', shard)}.parquet"
+
+
 def write_partition(loc: Location, kind: str, shard: str, frame) -> None:
-    loc.write_table(f"{kind}/{safe_name('shard id', shard)}.parquet", frame)
+    loc.write_table(partition_rel(kind, shard), frame)
+
+
+def has_partitions(loc: Location, shard: str) -> bool:
+    """Whether a shard's index and ledger partitions are there (a complete shard without
+    them runs again: every chunk is skipped, and both are written anew)."""
+    return all(loc.exists(partition_rel(kind, shard)) for kind in (INDEX, LEDGER))
 
 
 def read_partitions(loc: Location, kind: str, key: str = "clip"):

@@ -50,7 +50,7 @@ def image_codec(spec: ArraySpec) -> BloscCodec:
 # an empty mask): presence of the object is what a skip checks (handedit.storage.integrity).
 zarr.config.set({"array.write_empty_chunks": True})
 
-REPAIR_HINT = "run `handedit verify DIR --repair`, then `handedit curate` again to recompute it"
+REPAIR_HINT = "run `handedit verify DIR --deep --repair`, then `handedit curate` again to recompute it"
 
 
 class StoreError(RuntimeError):
@@ -151,7 +151,7 @@ def _open_group(loc, mode: str) -> zarr.Group:
         return zarr.open_group(loc.zarr_store(read_only=mode == "r"), mode=mode)
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise StoreError(f"{loc.store_url}/zarr.json is not valid JSON ({exc}); the store's root metadata is damaged: "
-                         f"restore it from a backup, or curate into a new --out") from None
+                         f"run `handedit verify {loc.url} --repair` to rebuild it from the groups") from None
 
 
 def create_or_open_store(where, frames_per_chunk: int, code_version: str) -> zarr.Group:

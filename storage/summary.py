@@ -87,16 +87,10 @@ def run_summary(root: zarr.Group, store: str = "", clips=None) -> dict:
              for r in index_rows(root, clips).to_dict(orient="records")]
     for u in units:
         u["side"] = None if u["side"] is None or u["side"] != u["side"] else u["side"]
-    multi = {u["clip"] for u in units if u["side"] is not None}
-    rows = []
-    for r in status_counts(root, by_side=True, clips=clips).to_dict(orient="records"):
-        side = r["side"] if isinstance(r["side"], str) else None
-        rows.append({"stage": r["stage"], "side": side, "status": r["status"], "frames": int(r["frames"])})
-    if not multi:  # every clip has one hand: sides carry no information
-        merged: dict[tuple, int] = {}
-        for r in rows:
-            merged[(r["stage"], r["status"])] = merged.get((r["stage"], r["status"]), 0) + r["frames"]
-        rows = [{"stage": s, "side": None, "status": st, "frames": n} for (s, st), n in merged.items()]
+    # the same rows as `handedit status` prints: per-hand stages per side (a one-hand source's
+    # side too), the others with side None
+    rows = [{"stage": r["stage"], "side": r["side"] if isinstance(r["side"], str) else None, "status": r["status"],
+             "frames": int(r["frames"])} for r in status_counts(root, by_side=True, clips=clips).to_dict(orient="records")]
     ledger = read_ledger(root, clips=None)
     rejections = ([{"stage": s, "reason": r, "count": int(n)}
                    for (s, r), n in ledger.groupby(["stage", "reason_name"]).size().items()] if len(ledger) else [])

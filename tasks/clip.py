@@ -16,8 +16,10 @@ stage's declaration (``tasks.stage``, ``tasks.STAGES``) says what each chunk rea
 of units another task owns (the clip's, for an embodiment task) are read from the store.
 
 Retries: a transient error (I/O, connection, memory) of a chunk is retried here, twice,
-after 1 and 5 s; any other error rejects that chunk's frames with ``STAGE_ERROR`` and the
-message, its dependents mark them ``UPSTREAM``, and the walk goes on. Prefect retries a
+after 1 and 5 s; a full (or read-only) device fails the task, naming the file
+(``StoreFull``: the run fails, no frame is rejected for it); any other error rejects that
+chunk's frames with ``STAGE_ERROR`` and the message, its dependents mark them ``UPSTREAM``,
+and the walk goes on. Prefect retries a
 task that died (a lost worker): its finished chunks are then skipped.
 """
 
@@ -31,7 +33,6 @@ from collections import Counter
 from dataclasses import dataclass, field
 
 from prefect import task
-
 from pydantic import BaseModel, ConfigDict, Field
 
 from handedit.reasons import Reason
@@ -43,7 +44,8 @@ from handedit.storage.location import location_of
 from handedit.storage.provenance import ChunkRecord, changed_inputs, drop_records, is_current, provenance_key
 from handedit.storage.store import CorruptChunk, create_previews
 from handedit.tasks import STAGES
-from handedit.tasks.common import RETRIES, RETRY_DELAYS, ChunkJob, execute, failure_record, is_transient, open_root
+from handedit.tasks.common import (RETRIES, RETRY_DELAYS, ChunkJob, StoreFull, execute, failure_record, is_transient,
+                                   open_root, store_full)
 from handedit.tasks.plan import ClipPlan, clip_plan, plan_json, stored_plan
 from handedit.tasks.stage import Inputs, Robot, key_inputs, nodes as stage_nodes
 
@@ -229,7 +231,6 @@ def _walk_store(root, store: str, plan: ClipPlan, nodes, config: WalkConfig, cod
     def pre(node, key, inputs, version, p):
         return None if prefail is None else prefail(root, job_of(node, key, inputs, version, p))
 
-    own = {n.unit for n in nodes}
     present: dict = {}  # unit -> its stored objects: listed once, only when a skip needs it
     corrupt: set = set()  # (unit, chunk) of this task's own units whose stored bytes failed to decode
 
@@ -246,6 +247,12 @@ def _walk_store(root, store: str, plan: ClipPlan, nodes, config: WalkConfig, cod
 
     starts = {n.id: n.start for n in nodes}  # the chunks this walk writes
 
+    def save(node, record: dict) -> None:
+        try:
+            write_records(root, node.unit, [ChunkRecord.from_json(record)])
+        except OSError as exc:
+            raise (store_full(exc, f"the record of {node.unit.path} chunk {node.chunk}") or exc) from None
+
     def run(into: WalkResult) -> WalkResult:
         kept = _handoff(root, nodes, starts, records, config.handoff_mib, config.reuse_mib)
 
@@ -254,8 +261,7 @@ def _walk_store(root, store: str, plan: ClipPlan, nodes, config: WalkConfig, cod
                 kept.done(_own_reads(node, starts))
 
         with handing_over(kept):
-            return walk(nodes, params.__getitem__, records, run_noting,
-                        lambda n, r: write_records(root, n.unit, [ChunkRecord.from_json(r)]), into,
+            return walk(nodes, params.__getitem__, records, run_noting, save, into,
                         faulty=lambda u: _faulty(config, u), prefail=pre, missing=missing, finished=finished, attrs=attrs)
 
     run(result)
@@ -318,6 +324,9 @@ def _run(root, job: ChunkJob, body, inputs) -> dict:
             record["attempts"] = attempt + 1
             return record
         except Exception as exc:  # noqa: BLE001 - a chunk's failure is recorded, not raised
+            if (full := store_full(exc, f"{job.unit.path} frames {job.start}-{job.stop - 1}")) is not None:
+                # the run fails; no frame is rejected for it
+                raise full from None
             if is_transient(exc) and attempt < RETRIES:
                 time.sleep(RETRY_DELAYS[attempt])
                 continue
@@ -439,7 +448,13 @@ def run_embodiment(job: EmbodimentJob) -> dict:
     return vars(result)
 
 
-_OPTIONS = {"retries": 1, "retry_delay_seconds": [5.0], "persist_result": False}
+def _retry_unless_full(task, task_run, state) -> bool:
+    """Prefect retries a task that died (a lost worker), not one that found the store full."""
+    exc = state.data if isinstance(state.data, BaseException) else None
+    return not isinstance(exc, StoreFull)
+
+
+_OPTIONS = {"retries": 1, "retry_delay_seconds": [5.0], "retry_condition_fn": _retry_unless_full, "persist_result": False}
 
 
 def _no_cache():

@@ -30,7 +30,7 @@ def body(inp: Inputs, job: ChunkJob) -> StageOutput:
     if cfg.model_path is not None:
         from handedit.models.hand_pose import HandPoseLifter
 
-        lifter = HandPoseLifter(cfg.model_path, intr)
+        lifter = HandPoseLifter(cfg.model_path, intr, cfg.onnx)
     est = domain.estimate_hands(frames, job.n, intr, job.plan.fps, cfg, lifter=lifter)
     ok = gate(status)
     hand_status = combine_hands(est.hand_status, np.repeat(ok[:, None], est.hand_status.shape[1], 1))

@@ -1,10 +1,12 @@
 """``write-release-shard``: one WebDataset shard of a release (a Prefect task on Dask).
 
-Reads its pairs' frames and masks from the curated store, writes the shard to a local
-temporary file (deterministic bytes: ``handedit.release.samples.TarWriter``), hashes it,
-then moves or uploads it whole to ``shards/<key>.tar`` with a ``<key>.json`` beside it
-(hash, size, pairs). A shard whose sidecar already exists (an earlier, interrupted
-attempt of the same content) is not written again.
+Reads its pairs' frames and masks from the curated store, each chunk re-hashed against its
+record first (``storage.integrity.VerifiedReads``: changed bytes are refused, naming the
+array, frames and file), writes the shard to a local temporary file (deterministic bytes:
+``handedit.release.samples.TarWriter``), hashes it, then moves or uploads it whole to
+``shards/<key>.tar`` with a ``<key>.json`` beside it (hash, size, pairs, ``verified``). A
+shard whose sidecar already exists and says its bytes were verified (an earlier,
+interrupted attempt of the same content) is not written again.
 """
 
 from __future__ import annotations
@@ -21,8 +23,8 @@ from handedit.release.samples import Pair, TarWriter, sample_files, union_sides
 from handedit.storage import Location, Unit
 from handedit.storage.layout import SCOPE_MASK
 from handedit.storage.releases import shard_info_rel, shard_rel
-from handedit.storage.store import read_array
-from handedit.tasks.common import open_root
+from handedit.storage.integrity import VerifiedReads
+from handedit.tasks.common import open_root, retry_transient
 
 
 @dataclass(frozen=True)
@@ -37,38 +39,41 @@ def write_shard(job: ShardJob) -> dict:
     loc = Location(job.out)
     sidecar = shard_info_rel(job.key)
     done = loc.read_json(sidecar)
-    if done:
+    if done and done.get("verified"):
         return {**done, "written": False}
     root = open_root(job.store)
+    reads = VerifiedReads(root)
     fd, tmp = tempfile.mkstemp(prefix="release-", suffix=".tar")
     n = 0
-    with os.fdopen(fd, "wb") as f:
-        writer = TarWriter(f)
-        for d in job.pairs:
-            p = Pair(**{**d, "sides": tuple(d["sides"])})
-            src_g = root[Unit("ingest", p.clip).path]
-            seg = root[Unit("segment", p.clip).path]
-            comp = root[Unit("composite", p.clip, embodiment=p.embodiment).path]
-            harm = root[Unit("harmonize", p.clip, embodiment=p.embodiment).path]
-            sides_all = list(seg.attrs.get("hands") or ["right"])
-            t = p.frame
-            for name, data in sample_files(
-                    p, read_array(src_g["frames"], t), read_array(harm["image"], t), read_array(comp["image"], t),
-                    union_sides(read_array(seg[SCOPE_MASK[p.track]], t), sides_all, list(p.sides)),
-                    union_sides(read_array(comp["robot_mask"], t), sides_all, list(p.sides)),
-                    read_array(src_g["object_mask"], t) if "object_mask" in src_g else None):
-                writer.add(name, data)
-            n += 1
-        writer.close()
+    try:
+        with os.fdopen(fd, "wb") as f:
+            writer = TarWriter(f)
+            for d in job.pairs:
+                p = Pair(**{**d, "sides": tuple(d["sides"])})
+                src, seg = Unit("ingest", p.clip), Unit("segment", p.clip)
+                comp, harm = (Unit(s, p.clip, embodiment=p.embodiment) for s in ("composite", "harmonize"))
+                sides_all = list(root[seg.path].attrs.get("hands") or ["right"])
+                t = p.frame
+                for name, data in sample_files(
+                        p, reads.frame(src, "frames", t), reads.frame(harm, "image", t), reads.frame(comp, "image", t),
+                        union_sides(reads.frame(seg, SCOPE_MASK[p.track], t), sides_all, list(p.sides)),
+                        union_sides(reads.frame(comp, "robot_mask", t), sides_all, list(p.sides)),
+                        reads.frame(src, "object_mask", t) if "object_mask" in root[src.path] else None):
+                    writer.add(name, data)
+                n += 1
+            writer.close()
+    except BaseException:
+        os.unlink(tmp)
+        raise
     sha = file_sha256(tmp)
     size = os.path.getsize(tmp)
     loc.put_file(tmp, shard_rel(job.key))
-    info = {"key": job.key, "path": shard_rel(job.key), "sha256": sha, "bytes": size, "pairs": n}
+    info = {"key": job.key, "path": shard_rel(job.key), "sha256": sha, "bytes": size, "pairs": n, "verified": True}
     loc.write_json(sidecar, info)  # after the tar: a sidecar vouches for a complete shard
     return {**info, "written": True}
 
 
 @task(name="write-release-shard", task_run_name="release-shard[{job.key}]", retries=2, retry_delay_seconds=[2.0, 10.0],
-      persist_result=False, cache_policy=NO_CACHE)
+      retry_condition_fn=retry_transient, persist_result=False, cache_policy=NO_CACHE)
 def write_release_shard(job: ShardJob) -> dict:
     return write_shard(job)

@@ -120,5 +120,4 @@ def _side_world(wfc: np.ndarray, side: str) -> np.ndarray:
 
 
 STAGE = Stage("retarget", "embodiment", RetargetConfig, reads, body,
-              whole_clip=lambda plan, track: track == "hand_arm", settings=("HANDEDIT_CASADI_COMPILE",),
-              uses=(RetargetQCConfig,))
+              whole_clip=lambda plan, track: track == "hand_arm", uses=(RetargetQCConfig,))

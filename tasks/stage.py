@@ -115,17 +115,12 @@ class Stage:
     body: Callable[["Inputs", "ChunkJob"], "StageOutput"]
     whole_clip: Callable[[ClipPlan, str], bool] = _never  # (plan, track): one node covers every frame
     applies: Callable[[ClipPlan], bool] = _always  # whether the clip has this stage at all
-    settings: tuple[str, ...] = ()  # environment variables its domain code reads that change its outputs
     uses: tuple[type, ...] = ()  # config classes the body derives from its config (their VERSION is keyed too)
 
     def versions(self, cfg: BaseModel) -> dict[str, int]:
         """VERSION of every config class this stage runs: its own, those nested in it, those it derives."""
         versions = {**config_versions(cfg), **{c.__name__: int(getattr(c, "VERSION", 1)) for c in self.uses}}
         return dict(sorted(versions.items()))
-
-
-# how onnxruntime runs a stage's model (the execution provider and threads change the numbers)
-MODEL_SETTINGS = ("HANDEDIT_ORT_PROVIDERS", "HANDEDIT_ORT_THREADS")
 
 
 @dataclass
@@ -150,11 +145,8 @@ class Node:
 def nodes(stages, plan: ClipPlan, units: list[Unit], configs: dict[str, BaseModel], frames_per_chunk: int,
           robot: Robot | None = None) -> list[Node]:
     """Every chunk node of ``units`` (each unit's stage from ``stages``), with its declared
-    inputs; every node also declares the clip's facts, its config's nested VERSIONs, the
-    content of the model files its config names and the settings that change its outputs
-    (as the walking process sees them: the values its body runs with)."""
-    import os
-
+    inputs; every node also declares the clip's facts, its config's nested VERSIONs and the
+    content of the model files its config names."""
     from handedit.digests import model_digests
 
     by_name = {s.name: s for s in stages}
@@ -167,11 +159,8 @@ def nodes(stages, plan: ClipPlan, units: list[Unit], configs: dict[str, BaseMode
     out = []
     for unit in units:
         stage, cfg = by_name[unit.stage], configs[unit.stage]
-        models = model_digests(cfg)
-        settings = (*stage.settings, *(MODEL_SETTINGS if models else ()))
         common = [Value("clip", plan.facts()), Value("versions", stage.versions(cfg)),
-                  *(Value(f"model:{k}", d) for k, d in sorted(models.items())),
-                  *(Value(f"setting:{n}", os.environ.get(n, "")) for n in settings)]
+                  *(Value(f"model:{k}", d) for k, d in sorted(model_digests(cfg).items()))]
         for k, (s, e) in ([(0, (0, plan.n_frames))] if whole(unit) else list(enumerate(ranges))):
             inputs = [*common, *stage.reads(At(plan, unit, k, s, e, ranges, cfg, robot, whole))]
             spans = {(i.unit, i.chunk): ((0, plan.n_frames) if whole(i.unit) else ranges[i.chunk])

@@ -30,7 +30,7 @@ from handedit.render.bank import BankConfig, render_bank_views
 from handedit.reasons import Reason
 from handedit.sources import open_source
 from handedit.sources.synthetic import make_clip_specs
-from handedit.storage import Unit, create_or_open_store, create_unit, write_chunk
+from handedit.storage import ChunkRecord, Unit, create_or_open_store, create_unit, write_chunk, write_records
 from handedit.storage.bank import BankEntry, write_bank_entry
 from handedit.storage.store import set_attrs
 from handedit.storage.benchmark import BenchDir, iter_jsonl, read_image, read_mask, write_image
@@ -73,7 +73,8 @@ def write_curated_store(path, n_frames: int = 6, rejected: tuple[int, ...] = (2,
         (Unit("qc", clip, embodiment=EMB), {"status": qc, "hand_status": qc[:, None]}, {}),
     ]:
         create_unit(root, unit, n_frames, sizes, f, **kw)
-        write_chunk(root, unit, 0, arrays)
+        digests = write_chunk(root, unit, 0, arrays)  # and its record, as the walk writes it: publishing checks both
+        write_records(root, unit, [ChunkRecord(unit.stage, 0, 0, n_frames, "test", 1, {}, {}, outputs=digests)])
     set_attrs(root, "", {"clips": {clip: {"n_frames": n_frames}}, "embodiments": {EMB: {"scope": "hand", "dof": 16}}})
     return path, n_frames - len(rejected)
 

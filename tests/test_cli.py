@@ -41,3 +41,29 @@ def test_inspecting_something_that_is_not_a_store(tmp_path, capsys):
 def test_curate_needs_an_input(tmp_path):
     with pytest.raises(SystemExit, match="give --demo, --video FILE, --source NAME --root DIR or --config FILE"):
         main(["curate", "--out", str(tmp_path)])
+
+
+def test_bad_values_are_one_line_each_before_any_work(tmp_path, capsys, caplog):
+    import yaml
+
+    from handedit.flows.config import CurateConfig
+    from handedit.flows.curate import preflight
+
+    with pytest.raises(SystemExit, match="--clips 0: give 1 or more"):
+        main(["curate", "--demo", "--clips", "0", "--out", str(tmp_path / "x")])
+    assert main(["curate", "--demo", "--clips", "1", "--width", "8", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err
+    assert "width: Input should be greater than or equal to 16" in err and "pydantic" not in err
+    for bad in ("8", -5):  # a string where a count belongs, a negative count: refused with the config, not later
+        cfg = tmp_path / f"bad{bad}.yaml"
+        cfg.write_text(yaml.safe_dump({"out": str(tmp_path / "y"), "clips": [{"kind": "synthetic", "n_frames": bad}]}))
+        with pytest.raises(ValueError, match="n_frames"):
+            CurateConfig.from_yaml(cfg)
+    # --out inside the dataset's tree: a warning, not a refusal
+    tree = tmp_path / "egodex"
+    tree.mkdir()
+    import logging
+
+    with caplog.at_level(logging.WARNING):
+        preflight(CurateConfig(out=str(tree / "runs" / "a"), sources=[{"kind": "egodex", "root": str(tree)}]))
+    assert "inside the source tree" in caplog.text

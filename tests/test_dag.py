@@ -3,8 +3,6 @@ it, without Prefect or a store."""
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import pytest
 
 from handedit.flows.config import CurateConfig

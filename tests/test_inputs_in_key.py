@@ -75,7 +75,7 @@ def test_a_robot_mesh_edited_in_place_rerenders(tmp_path, robot):
     assert not np.array_equal(before, after)  # the new mesh was rendered, not a cached one
 
 
-def test_a_nested_config_version_and_a_setting_rerun_retarget(tmp_path, robot, monkeypatch):
+def test_a_nested_config_version_reruns_retarget(tmp_path, robot, monkeypatch):
     from handedit.retarget.qc import RetargetQCConfig
 
     curate(tmp_path / "run")
@@ -83,9 +83,21 @@ def test_a_nested_config_version_and_a_setting_rerun_retarget(tmp_path, robot, m
     again = curate(tmp_path / "run")
     assert again["why"] == {"retarget[allegro]: config versions changed": 2}
     assert again["ran"]["retarget"] == 2 and "segment" not in again["ran"]
-    monkeypatch.setenv("HANDEDIT_CASADI_COMPILE", "0")  # interpreted solvers: a setting that can change the numbers
-    again = curate(tmp_path / "run")
-    assert again["why"] == {"retarget[allegro]: setting HANDEDIT_CASADI_COMPILE changed": 2}
+
+
+def test_a_setting_is_a_parameter_and_a_speed_switch_changes_no_byte(tmp_path, robot, monkeypatch):
+    """How a model runs is run configuration (``onnx``: providers, threads), hence keyed; the
+    compiled solvers' switch is speed only: interpreted solvers give the same bytes."""
+    from handedit.vision.segment import SegmentConfig
+
+    assert "onnx" in SegmentConfig().model_dump() and SegmentConfig().onnx.providers == ("CPUExecutionProvider",)
+    curate(tmp_path / "run")
+    monkeypatch.setenv("HANDEDIT_CASADI_COMPILE", "0")
+    again = curate(tmp_path / "fresh")
+    a, b = open_store(tmp_path / "run"), open_store(tmp_path / "fresh")
+    path = Unit("retarget", again["clip"], embodiment=EMB).path
+    assert np.array_equal(a[path]["qpos"][:], b[path]["qpos"][:]) and np.array_equal(a[path]["root_pose"][:],
+                                                                                     b[path]["root_pose"][:])
 
 
 def test_a_stage_parameter_reruns_that_stage_and_says_so(tmp_path, robot):

@@ -166,7 +166,23 @@ def test_damaged_root_metadata_is_one_message(run, cluster, capsys):
     with pytest.raises(StoreError, match="zarr.json is not valid JSON"):
         open_store(run)
     assert main(["status", str(run)]) == 2
-    assert "zarr.json is not valid JSON" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "zarr.json is not valid JSON" in err and "verify" in err and "--repair" in err
+    # its few fields are rebuilt from the groups; nothing else was lost
+    assert main(["verify", str(run), "--repair"]) == 0
+    assert "rebuilt" in capsys.readouterr().out
+    assert open_store(run).attrs["frames_per_chunk"] == F
+    summary = run_curate(config(run, cluster))
+    assert not summary["errors"] and all(c["ran"] == 0 for c in summary["stages"].values())
+
+
+def test_deleted_index_and_ledger_are_rebuilt(run, cluster):
+    shutil.rmtree(run / "index")
+    shutil.rmtree(run / "ledger")
+    summary = run_curate(config(run, cluster))
+    assert not summary["errors"] and summary["shards"]["ran"] == 1
+    assert all(c["ran"] == 0 for c in summary["stages"].values())  # every chunk skipped
+    assert list((run / "index").glob("*.parquet")) and list((run / "ledger").glob("*.parquet"))
 
 
 def test_damaged_group_metadata_is_found_and_rebuilt(run, reference, cluster, capsys):
@@ -182,3 +198,61 @@ def test_damaged_group_metadata_is_found_and_rebuilt(run, reference, cluster, ca
     assert not summary["errors"] and summary["stages"]["segment"]["ran"] == T // F
     assert summary["stages"]["harmonize"]["skipped"] == T // F  # recomputed bytes are the same: nothing downstream re-runs
     assert_same_bytes(run, reference)
+
+
+def test_changed_but_decodable_bytes_are_never_published(run, reference, cluster, tmp_path, capsys):
+    """Valid bytes, the wrong pixels (the second chunk's harmonized frames over the first's):
+    presence checks pass; release and bench build re-hash what they publish and refuse."""
+    from handedit.storage.releases import read_release, versions
+
+    first, second = object_file(run, HARMONIZE, "image", 0), object_file(run, HARMONIZE, "image", 1)
+    first.write_bytes(second.read_bytes())
+    assert main(["verify", str(run)]) == 0  # presence only: nothing to see
+    capsys.readouterr()
+    rel = tmp_path / "releases"
+    assert main(["release", "--from", str(run), "--out", str(rel), "--address", cluster.address]) != 0
+    err = capsys.readouterr().err
+    assert "harmonize/image frames 0-7" in err and str(first) in err and "--deep --repair" in err, err
+    assert versions(Location(rel)) == []
+    bench = tmp_path / "bench"
+    assert main(["bench", "build", "--store", str(run), "--out", str(bench), "-n", "2"]) == 2
+    assert "harmonize/image frames 0-7" in capsys.readouterr().err and not bench.exists()
+    # the advice repairs: the deep check finds it, curate recomputes it, the release publishes verified shards
+    assert main(["verify", str(run), "--deep", "--repair"]) == 0
+    assert not run_curate(config(run, cluster))["errors"]
+    assert_same_bytes(run, reference)
+    assert main(["release", "--from", str(run), "--out", str(rel), "--address", cluster.address]) == 0
+    manifest = read_release(Location(rel), versions(Location(rel))[-1])
+    assert manifest["shards"] and all(s["verified"] for s in manifest["shards"])
+
+
+@contextmanager
+def small_disk(path: Path, size: str):
+    """A tmpfs of ``size`` mounted at ``path`` (root, as in CI)."""
+    import subprocess
+
+    path.mkdir()
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)], capture_output=True, text=True)
+    if done.returncode:
+        pytest.fail(f"mounting a tmpfs needs root (CI runs as root): {done.stderr.strip()}")
+    try:
+        yield path
+    finally:
+        subprocess.run(["umount", "-l", str(path)], check=False)
+
+
+def test_a_full_disk_fails_the_run_and_release_refuses_it(tmp_path, cluster, prefect_api, capsys):
+    from handedit.storage import read_ledger
+
+    with small_disk(tmp_path / "small", "700k") as disk:
+        out = disk / "run"
+        argv = ["curate", "--demo", "--clips", "1", "--frames", "16", "--width", "96", "--height", "72",
+                "--frames-per-chunk", "8", "--out", str(out), "--address", cluster.address, "--no-progress"]
+        assert main(argv) == 1
+        said = "".join(capsys.readouterr())
+        assert "No space left on device" in said and "free space" in said, said
+        # no frame was rejected for it: a rejection would be published as a removed pair
+        ledger = read_ledger(open_store(out))
+        assert "STAGE_ERROR" not in set(ledger["reason_name"])
+        assert main(["release", "--from", str(out), "--out", str(tmp_path / "releases"), "--address", cluster.address]) == 2
+        assert "left incomplete" in capsys.readouterr().err

@@ -146,10 +146,12 @@ def test_curate_one_fixture_clip_of_each_mano_dataset(trees, tmp_path, prefect_a
         assert (store[Unit("qc", clip, embodiment="allegro").path]["status"][:] == Reason.OK).any(), clip
 
 
-def test_an_object_mesh_edited_in_place_changes_the_clip_fingerprint(trees, tmp_path):
-    """The object's mesh is read by ingest (occlusion depth) and retarget (contact QC): its
-    content, not only the annotation files, identifies the clip."""
+def test_an_object_mesh_or_an_image_edited_in_place_changes_the_clip_fingerprint(trees, tmp_path):
+    """The object's mesh is read by ingest (occlusion depth) and retarget (contact QC), the
+    frames by ingest: their content, not only the annotation files, identifies the clip."""
     import shutil
+
+    import cv2
 
     root = tmp_path / "oakink2"
     shutil.copytree(trees["oakink2"], root)
@@ -160,4 +162,9 @@ def test_an_object_mesh_edited_in_place_changes_the_clip_fingerprint(trees, tmp_
     import trimesh
 
     trimesh.load(mesh).apply_scale(1.1).export(mesh)  # same file name, a bigger box
-    assert spec.open().info().fingerprint != before
+    moved = spec.open().info().fingerprint
+    assert moved != before
+    # and a frame's image file rewritten in place (same name, other pixels)
+    image = sorted((root / "data" / fx.OAK_TOKEN / fx.OAK_EGO).glob("*.png"))[1]
+    cv2.imwrite(str(image), 255 - cv2.imread(str(image)))
+    assert spec.open().info().fingerprint not in (before, moved)

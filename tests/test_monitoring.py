@@ -16,6 +16,14 @@ def test_spans_per_embodiment_with_time_per_stage(tmp_path, prefect_api, dask_cl
                                       embodiments=["allegro"], frames_per_chunk=8,
                                       cluster=ClusterConfig(address=dask_cluster.scheduler_address)))
     assert summary["dashboard"].startswith("http://127.0.0.1") and "/flow-run/" in (summary["prefect_run"] or "")
+    # an existing cluster's dashboard outlives the command; the test session's Prefect server too
+    assert summary["links"]["Dask dashboard"] == {"url": summary["dashboard"], "note": ""}
+    assert summary["links"]["Prefect run"]["note"] == ""
+    from handedit.storage import Location
+    from handedit.storage.shards import run_logs, shard_ids
+
+    loc = Location(tmp_path / "run")
+    assert run_logs(loc, shard_ids(loc)[0])[-1]["links"] == summary["links"]  # the run log keeps them
 
     def spans(dask_scheduler):
         out = {}
@@ -28,3 +36,16 @@ def test_spans_per_embodiment_with_time_per_stage(tmp_path, prefect_api, dask_cl
         found = client.run_on_scheduler(spans)
     assert {"ingest", "registration", "segment", "restore_background"} <= found[("curate", "clip")]
     assert {"retarget", "render", "composite", "harmonize", "qc"} <= found[("curate", "allegro")]
+
+
+def test_a_local_cluster_and_a_temporary_api_are_labelled_as_gone_with_the_command():
+    from unittest import mock
+
+    from handedit.flows.curate import run_links
+
+    with mock.patch("handedit.flows.api._TEMPORARY", ["http://127.0.0.1:1/api"]):
+        links = run_links("http://127.0.0.1:8787/status", "http://127.0.0.1:1/runs/flow-run/x", local_cluster=True)
+    assert "gone when this command exits" in links["Dask dashboard"]["note"]
+    assert "temporary Prefect API" in links["Prefect run"]["note"]
+    assert run_links("http://d/status", "http://p/x", local_cluster=False) == {
+        "Dask dashboard": {"url": "http://d/status", "note": ""}, "Prefect run": {"url": "http://p/x", "note": ""}}

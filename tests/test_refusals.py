@@ -142,3 +142,84 @@ def test_nothing_curated_exits_nonzero_and_counts_agree_with_the_ledger(tmp_path
     ledger = read_ledger(open_store(out))
     assert len(ledger) == 1 and ledger["reason_name"][0] == "SOURCE_UNREADABLE"
     assert "rejections: 1" in printed.out and "nothing was curated" in printed.err
+
+
+class _Scripted:
+    """A server on 127.0.0.1 answering every POST with one scripted reply; records headers."""
+
+    def __init__(self, status: int, headers: dict | None = None, body: bytes = b"{}"):
+        import threading
+        from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+        self.seen: list[dict] = []
+        outer = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def log_message(self, *a):
+                pass
+
+            def _answer(self):
+                outer.seen.append(dict(self.headers))
+                self.rfile.read(int(self.headers.get("Content-Length", 0) or 0))
+                self.send_response(status)
+                for k, v in (headers or {}).items():
+                    self.send_header(k, v)
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
+
+            do_POST = do_GET = _answer
+
+        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}"
+        threading.Thread(target=self.httpd.serve_forever, daemon=True).start()
+
+    def close(self):
+        self.httpd.shutdown()
+
+
+def _request(tmp_path) -> EditRequest:
+    import cv2
+
+    src = tmp_path / "src.png"
+    cv2.imwrite(str(src), np.zeros((8, 8, 3), np.uint8))
+    return EditRequest("i", src, None, "Replace the human hand with a robot hand", tmp_path / "out.png")
+
+
+def test_a_redirect_never_carries_the_key_to_another_host(tmp_path):
+    thief = _Scripted(200)
+    hop = _Scripted(302, {"Location": thief.url + "/steal"})
+    try:
+        editor = HttpImageEditor(HttpEditorConfig(base_url=hop.url + "/v1", api_key=KEY, model="m"))
+        with pytest.raises(EditorError, match="redirected to .*/steal"):
+            editor.edit(_request(tmp_path))
+        judge = VlmJudge(JudgeConfig(base_url=hop.url + "/v1", api_key=JUDGE_KEY, max_tries=2, backoff_s=0))
+        img = np.zeros((16, 16, 3), np.uint8)
+        judge.judge(img, img, None, "Replace the human hand with a robot hand")
+    finally:
+        thief.close()
+        hop.close()
+    assert hop.seen and thief.seen == []  # the key went to the configured host only
+
+
+def test_an_image_url_must_be_http(tmp_path):
+    import json
+
+    server = _Scripted(200, {"Content-Type": "application/json"},
+                       json.dumps({"data": [{"url": "file:///etc/hostname"}]}).encode())
+    try:
+        editor = HttpImageEditor(HttpEditorConfig(base_url=server.url + "/v1", api_key=KEY, model="m"))
+        with pytest.raises(EditorError, match="refusing file URL") as err:
+            editor.edit(_request(tmp_path))
+    finally:
+        server.close()
+    assert not err.value.transient
+
+
+def test_redaction_finds_a_key_in_any_case_escaped_or_in_part():
+    register(KEY)
+    escaped = "".join("\\u%04x" % ord(c) for c in KEY)
+    for text in (KEY.lower(), KEY.upper(), f"key={KEY[:16]}...", escaped, '{"key": "' + KEY + '"}'):
+        clean = redact(f"error: {text} was rejected")
+        assert MARK in clean and KEY[3:11].lower() not in clean.lower() and "\\u0073\\u006b" not in clean, clean
+    assert redact("the hand moved 0.12 m in frame 123") == "the hand moved 0.12 m in frame 123"

@@ -173,3 +173,70 @@ def test_datasheet_families_follow_the_pipeline_order():
     from handedit.storage.layout import STAGES
 
     assert tuple(FAMILY) == STAGES  # the primary cause is the earliest stage in this order
+
+
+def test_a_hostile_manifest_renders_inert_in_headless_chromium(released):
+    """Manifest fields and links are data: markup in them is shown as text, scripts never run."""
+    import json as js
+    import shutil as sh
+    import subprocess
+
+    browser = sh.which("chromium") or sh.which("chromium-browser")
+    assert browser, "chromium is not installed: `bash deploy/setup.sh --test` installs it (Debian package chromium)"
+    rel = released["tmp"] / "hostile"
+    sh.copytree(released["rel"], rel)
+    path = rel / "v0001" / "manifest.json"
+    m = js.loads(path.read_text())
+    bad = "<img src=x onerror=\"document.title='pwned'\">"
+    m["counts"]["pairs"] = f'1" onmouseover="x" data-x="{bad}'
+    m["counts"]["shards_reused"] = "<script>document.title='pwned'</script>"
+    m["code_version"] = bad
+    m["links"] = {"Prefect run": "javascript:document.title='pwned'", "Dask dashboard": "http://127.0.0.1:8787/status"}
+    path.write_text(js.dumps(m))
+    assert main(["dashboard", "--release", str(rel / "v0001")]) == 0
+    page = rel / "v0001" / "qa.html"
+    text = page.read_text()
+    assert 'href="javascript' not in text and 'href="http://127.0.0.1:8787/status"' in text
+    assert "<script>document" not in text
+    flags = [browser, "--headless=new", "--no-sandbox", "--disable-gpu", "--virtual-time-budget=5000"]
+    dom = subprocess.run([*flags, "--dump-dom", page.as_uri()], capture_output=True, text=True, timeout=120).stdout
+    assert "<title>handedit release v0001</title>" in dom and "pwned" not in dom.split("</title>")[0]
+    assert "<img src=\"x\"" not in dom and "&lt;img src=x" in dom  # shown, not made
+
+
+def test_clip_ids_that_differ_only_by_a_dot_keep_distinct_sample_keys():
+    from handedit.release.samples import sample_key
+    from handedit.storage.layout import safe_name
+
+    keys = {sample_key(c, "allegro", 3) for c in ("take.1", "take_1", "take-1")}
+    assert len(keys) == 3 and not any("." in k for k in keys)
+    for bad in ("a b", "a<b", "a?b", "a#b", "a%b", ".hidden", ""):
+        with pytest.raises(ValueError, match="letters, digits"):
+            safe_name("clip id", bad)
+    assert safe_name("clip id", "egodex-add_remove_lid-0.v2") == "egodex-add_remove_lid-0.v2"
+
+
+def test_a_shard_not_verified_when_written_is_never_reused(released):
+    """A parent's shard whose bytes were not checked against the store when it was written
+    (a release made before the check) is written again, verified, not reused."""
+    import json as js
+    import shutil as sh
+
+    rel = released["tmp"] / "unverified"
+    sh.copytree(released["rel"], rel)
+    for sidecar in (rel / "shards").glob("*.json"):
+        info = js.loads(sidecar.read_text())
+        info.pop("verified", None)
+        sidecar.write_text(js.dumps(info))
+    latest = versions(Location(rel))[-1]
+    path = rel / latest / "manifest.json"
+    m = js.loads(path.read_text())
+    for s in m["shards"]:
+        s.pop("verified", None)
+    path.write_text(js.dumps(m))
+    argv = ["release", "--from", str(released["run"]), "--out", str(rel), "--shard-mb", SHARD_MB,
+            "--address", released["cluster"].scheduler_address]
+    assert main(argv) == 0
+    new = read_release(Location(rel), versions(Location(rel))[-1])
+    assert new["version"] != latest and new["counts"]["shards_reused"] == 0
+    assert all(s["verified"] for s in new["shards"])

@@ -118,3 +118,25 @@ def test_toolkit_judge_protocol_with_distractors_and_its_own_cache(shared_dir, t
         assert main(base + ["--out", str(tmp_path / "d")]) == 0
         rows = [json.loads(x) for x in (tmp_path / "d" / "per_sample.jsonl").read_text().splitlines()]
         assert all(r["VLM-target_embodiment_match"] == 3 and r["VLM-target_choice_correct"] == 0 for r in rows)
+
+
+def test_judge_failures_are_counted_under_both_protocols(shared_dir, tmp_path, prefect_api, dask_cluster, monkeypatch,
+                                                         capsys):
+    from _fake_openai import FakeOpenAI
+
+    manifest = _example(shared_dir, tmp_path)
+    base = ["bench", "evaluate", "--manifest", str(manifest), "--name", "example", "--address",
+            dask_cluster.scheduler_address]
+    with FakeOpenAI() as server:
+        server.echo_errors = True  # 401 to every call
+        monkeypatch.setenv("HANDEDIT_VLM_BASE_URL", server.base_url)
+        for protocol in ("toolkit", "paper"):
+            out = tmp_path / protocol
+            main(base + ["--out", str(out), "--judge-protocol", protocol])
+            said = "".join(capsys.readouterr())
+            rows = [json.loads(x) for x in (out / "per_sample.jsonl").read_text().splitlines()]
+            assert rows and all("401" in r.get("vlm_error", "") for r in rows), (protocol, rows[0])
+            summary = json.loads((out / "summary.json").read_text())
+            meta = summary.get("_meta", summary)  # the paper protocol's summary is flat
+            assert meta["n_judge_failures"] == len(rows), (protocol, meta)
+            assert "judge failed" in said and "401" in said, (protocol, said)

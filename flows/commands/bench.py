@@ -143,6 +143,10 @@ def _print_toolkit(summary: dict, out: Path) -> int:
         print(f"left empty (encoder or judge missing): {', '.join(meta['skipped'])}", file=sys.stderr)
     for e in meta["errors"][:10]:
         print(f"  {e['id']}: {e['error']}", file=sys.stderr)
+    if meta.get("n_judge_failures"):
+        print(f"{meta['n_judge_failures']} judge failure(s) (no VLM score):", file=sys.stderr)
+    for e in meta.get("judge_failures", [])[:10]:
+        print(f"  judge failed on {e['id']}: {e['error']}", file=sys.stderr)
     print(f"results (toolkit protocol): {out}/per_sample.jsonl, summary.json, leaderboard.md")
     return 0
 

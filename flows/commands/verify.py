@@ -18,9 +18,16 @@ import sys
 
 def cmd_verify(args: argparse.Namespace) -> int:
     from handedit.storage import Location, StoreError
-    from handedit.storage.integrity import repair, verify
+    from handedit.storage.integrity import rebuild_root, repair, root_damaged, verify
 
     loc = Location(args.store)
+    if args.repair and root_damaged(loc):
+        try:
+            attrs = rebuild_root(loc)
+        except StoreError as exc:
+            print(f"handedit verify: {exc}", file=sys.stderr)
+            return 2
+        print(f"repaired: rebuilt {loc.store_url}/zarr.json (frames_per_chunk {attrs['frames_per_chunk']})")
     try:
         problems = verify(loc, clips=args.clip or None, deep=args.deep)
     except StoreError as exc:
@@ -40,7 +47,8 @@ def cmd_verify(args: argparse.Namespace) -> int:
                   f"shard(s) {', '.join(repaired['shards']) or '-'}; run `handedit curate` with the same "
                   f"configuration to recompute them")
         elif problems:
-            print(f"run `handedit verify {args.store} --repair`, then `handedit curate` again, to recompute them")
+            deep = " --deep" if args.deep else ""
+            print(f"run `handedit verify {args.store}{deep} --repair`, then `handedit curate` again, to recompute them")
     return 0 if not problems or repaired else 1
 
 

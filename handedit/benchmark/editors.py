@@ -28,6 +28,7 @@ from pathlib import Path
 
 from pydantic import BaseModel, Field, SecretStr
 
+from handedit.http import Redirected, fetch_url, open_url
 from handedit.secrets import redact, register
 
 
@@ -84,8 +85,10 @@ class HttpImageEditor:
             headers["Authorization"] = f"Bearer {self.cfg.api_key.get_secret_value()}"
         url = self.cfg.base_url.rstrip("/") + "/images/edits"
         try:
-            with urllib.request.urlopen(urllib.request.Request(url, body, headers, method="POST"), timeout=self.cfg.timeout_s) as r:
+            with open_url(urllib.request.Request(url, body, headers, method="POST"), timeout=self.cfg.timeout_s) as r:
                 reply = json.loads(r.read())
+        except Redirected as exc:
+            raise EditorError(f"{url}: {exc.reason}") from None
         except urllib.error.HTTPError as exc:
             detail = exc.read()[:300].decode(errors="replace")
             raise EditorError(f"HTTP {exc.code} from {url}: {detail}", transient=exc.code == 429 or exc.code >= 500) from None
@@ -104,10 +107,13 @@ class HttpImageEditor:
             return base64.b64decode(data["b64_json"])
         if data.get("url"):
             try:
-                with urllib.request.urlopen(data["url"], timeout=self.cfg.timeout_s) as r:
-                    return r.read()
-            except (urllib.error.URLError, TimeoutError) as exc:
-                raise EditorError(f"cannot download the edited image {data['url']}: {exc}", transient=True) from None
+                return fetch_url(data["url"], timeout=self.cfg.timeout_s)
+            except Redirected as exc:
+                raise EditorError(f"the edited image {str(data['url'])[:80]}: {exc.reason}") from None
+            except (urllib.error.URLError, TimeoutError, ValueError) as exc:
+                refused = isinstance(exc, urllib.error.URLError) and str(exc.reason).startswith("refusing")
+                raise EditorError(f"cannot download the edited image {str(data['url'])[:80]}: {exc}",
+                                  transient=not refused) from None
         raise EditorError(f"{url} answered neither b64_json nor url")
 
 

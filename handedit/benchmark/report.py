@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from handedit.markdown import md
 from handedit.metrics.suite import METRICS
 
 # (group title, [(column label, metric)]) per table, in the paper's order
@@ -79,7 +80,7 @@ class TrackTable:
                  "|" + "---|" * (len(cols) + 1)]
         for e, cells in self.styled().items():
             vals = [f"**{s}**" if k == 1 else f"<u>{s}</u>" if k == 2 else s for s, k in (cells[m] for _, _, m in cols)]
-            lines.append(f"| {'*' + e + '* (reference)' if e in REFERENCE_ROWS else e} | " + " | ".join(vals) + " |")
+            lines.append(f"| {'*' + md(e) + '* (reference)' if e in REFERENCE_ROWS else md(e)} | " + " | ".join(vals) + " |")
         return "\n".join(lines) + "\n"
 
     def latex(self) -> str:

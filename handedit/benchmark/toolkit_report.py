@@ -21,13 +21,14 @@ import math
 import numpy as np
 import pandas as pd
 
+from handedit.markdown import md
 from handedit.metrics.toolkit import EMBODIED_METRICS, GENERIC_METRICS, VLM_METRICS
 
 HEAD = ["id", "dataset", "task", "instruction", "src_path", "pred_path", "gt_path", "test_mask_path", "gt_mask_path",
         "urdf_ref_paths", "urdf_mask_paths", "roi_mask_path", "human_mask_path", "robot_mask_path", "bg_mask_path",
         "object_mask_path", "urdf_ref_path", "target_name", "replacement_scope"]
 METRIC_COLUMNS = GENERIC_METRICS + VLM_METRICS + EMBODIED_METRICS
-TAIL = ["track", "embodiment", "pred_size", "resized", "seconds", "error"]
+TAIL = ["track", "embodiment", "pred_size", "resized", "seconds", "error", "vlm_error"]  # vlm_error: the judge's failure
 JUDGE = {"vlm_sc": "VLM-SC", "vlm_pq": "VLM-PQ", "vlm": "VLM"}
 # toolkit column -> the paper protocol's metric name (handedit.metrics.suite.METRICS)
 TO_PROJECT = {"Full-PSNR": "psnr_full", "BG-PSNR": "psnr_bg", "ROI-PSNR": "psnr_roi", "Full-SSIM": "ssim_full",
@@ -99,10 +100,10 @@ def _markdown(df: pd.DataFrame) -> str:
     def cell(v) -> str:
         if isinstance(v, float):
             return "nan" if math.isnan(v) else f"{v:.4g}"
-        return str(v)
+        return md(v)
 
     buf = io.StringIO()
-    buf.write("| " + " | ".join(df.columns) + " |\n|" + "|".join("---" for _ in df.columns) + "|\n")
+    buf.write("| " + " | ".join(md(c) for c in df.columns) + " |\n|" + "|".join("---" for _ in df.columns) + "|\n")
     for _, r in df.iterrows():
         buf.write("| " + " | ".join(cell(v) for v in r.tolist()) + " |\n")
     return buf.getvalue()

@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, Field, SecretStr
 
+from handedit.http import open_url
 from handedit.secrets import redact, register
 
 SC_PROMPT = """You are evaluating an image editing result for a benchmark on egocentric hand-to-dexterous-robot image editing.
@@ -271,6 +272,6 @@ class VlmJudge:
         if self.cfg.api_key:
             headers["Authorization"] = f"Bearer {self.cfg.api_key.get_secret_value()}"
         req = urllib.request.Request(url, data=json.dumps(body).encode(), headers=headers, method="POST")
-        with urllib.request.urlopen(req, timeout=self.cfg.timeout_s) as resp:
+        with open_url(req, timeout=self.cfg.timeout_s) as resp:
             reply = json.loads(resp.read())
         return reply["choices"][0]["message"]["content"]

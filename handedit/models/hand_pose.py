@@ -75,8 +75,8 @@ def to_camera(joints: np.ndarray, camera: np.ndarray, centre_side: tuple[float, 
 class HandPoseLifter:
     """The plug-in as ``estimate_hands``'s lifter: (rgb, HandLandmarks, side) -> (21,3) camera joints."""
 
-    def __init__(self, path, intr: Intrinsics):
-        self.model = load_model(path, CONTRACT)
+    def __init__(self, path, intr: Intrinsics, runtime=None):
+        self.model = load_model(path, CONTRACT, runtime)
         hw = self.model.fixed_hw("image")
         self.size = hw[0] if hw else DEFAULT_CROP
         self.intr = intr

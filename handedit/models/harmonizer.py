@@ -51,5 +51,5 @@ def harmonize_onnx_frame(model, image: np.ndarray, mask: np.ndarray, cfg) -> np.
     return result
 
 
-def load_harmonizer(path):
-    return load_model(path, CONTRACT)
+def load_harmonizer(path, runtime=None):
+    return load_model(path, CONTRACT, runtime)

@@ -42,7 +42,7 @@ CONTRACT = Contract(
 
 def inpaint_onnx(frames: np.ndarray, holes: Sequence[np.ndarray], targets: np.ndarray, ok: np.ndarray, cfg) -> tuple[np.ndarray, str]:
     """Restored ``frames[targets]`` (uint8) and the provenance tag; holes: m (H,W) bool masks."""
-    model = load_model(cfg.model_path, CONTRACT)
+    model = load_model(cfg.model_path, CONTRACT, cfg.onnx)
     m, H, W = frames.shape[:3]
     mh, mw = model.work_hw("frames", H, W, cfg.work_max_side)
     usable = np.flatnonzero(ok)

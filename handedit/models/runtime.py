@@ -6,6 +6,11 @@ module declares its ``Contract``; ``load_model`` checks the file exists, opens i
 onnxruntime, and compares names, ranks and dtypes before any frame is processed, so a
 wrong file fails at once with a message naming the file and the expected signature.
 The file's sha256 goes into the stage's ``method`` string (provenance).
+
+How onnxruntime runs it (``OnnxRuntime``: execution providers, threads) changes the numbers,
+so it is part of each model stage's config (its ``onnx`` field), hence of its provenance
+key: CPU with one thread by default, the same bytes on every machine; list
+``CUDAExecutionProvider`` first to use a GPU where a worker has one.
 """
 
 from __future__ import annotations
@@ -16,8 +21,19 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from handedit.digests import file_sha256
+
+
+class OnnxRuntime(BaseModel):
+    """How a stage's ONNX model runs (see module doc)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    providers: tuple[str, ...] = Field(("CPUExecutionProvider",), description="onnxruntime execution providers, in order of "
+                                       "preference; those a worker lacks are skipped (CPU is the last resort)")
+    threads: int = Field(1, ge=1, description="intra-op threads (more threads can change the numbers)")
 
 
 class ModelContractError(ValueError):
@@ -97,14 +113,11 @@ class LoadedModel:
         return dict(zip(names, outs))
 
 
-def _providers() -> list[str]:
+def _providers(wanted: tuple[str, ...]) -> list[str]:
     import onnxruntime as ort
 
     avail = ort.get_available_providers()
-    want = os.environ.get("HANDEDIT_ORT_PROVIDERS")
-    if want:
-        return [p for p in want.split(",") if p in avail] or ["CPUExecutionProvider"]
-    return [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in avail]
+    return [p for p in wanted if p in avail] or ["CPUExecutionProvider"]
 
 
 def _mismatch(kind: str, spec, got, required: bool) -> str | None:
@@ -116,8 +129,8 @@ def _mismatch(kind: str, spec, got, required: bool) -> str | None:
     return None
 
 
-def load_model(path: str | os.PathLike, contract: Contract) -> LoadedModel:
-    """Open ``path`` and check it against ``contract`` (cached per file content and process)."""
+def load_model(path: str | os.PathLike, contract: Contract, runtime: OnnxRuntime | None = None) -> LoadedModel:
+    """Open ``path`` and check it against ``contract`` (cached per file content, runtime and process)."""
     p = Path(path).expanduser()
     if not p.is_file():
         raise ModelContractError(
@@ -125,19 +138,19 @@ def load_model(path: str | os.PathLike, contract: Contract) -> LoadedModel:
             f"exported to the contract: {contract.signature()}"
         )
     st = p.stat()
-    return _load_cached(str(p.resolve()), st.st_mtime_ns, st.st_size, contract)
+    return _load_cached(str(p.resolve()), st.st_mtime_ns, st.st_size, contract, runtime or OnnxRuntime())
 
 
 @lru_cache(maxsize=8)
-def _load_cached(path: str, mtime_ns: int, size: int, contract: Contract) -> LoadedModel:
+def _load_cached(path: str, mtime_ns: int, size: int, contract: Contract, runtime: OnnxRuntime) -> LoadedModel:
     import onnxruntime as ort
 
     p = Path(path)
     try:
         opts = ort.SessionOptions()
-        opts.intra_op_num_threads = int(os.environ.get("HANDEDIT_ORT_THREADS", "1"))
+        opts.intra_op_num_threads = runtime.threads
         opts.log_severity_level = 3
-        sess = ort.InferenceSession(str(p), sess_options=opts, providers=_providers())
+        sess = ort.InferenceSession(str(p), sess_options=opts, providers=_providers(runtime.providers))
     except Exception as exc:
         raise ModelContractError(f"{contract.kind} model {p} could not be loaded by onnxruntime ({exc}); "
                                  f"expected an ONNX file with {contract.signature()}") from exc

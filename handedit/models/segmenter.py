@@ -105,7 +105,7 @@ def segment_onnx(frames: np.ndarray, kp2d: np.ndarray, kval: np.ndarray, cfg) ->
     statuses, hand axis of size 1 (``segment`` calls it once per hand)."""
     from handedit.vision.segment import SegmentResult, _forearm_dir
 
-    model = load_model(cfg.model_path, CONTRACT)
+    model = load_model(cfg.model_path, CONTRACT, cfg.onnx)
     n, H, W = frames.shape[:3]
     mh, mw = model.work_hw("image", H, W, cfg.work_max_side)
     sx, sy = mw / W, mh / H

@@ -55,10 +55,12 @@ def build(pairs: pd.DataFrame, status: pd.DataFrame, ledger: pd.DataFrame, embod
 
 
 def markdown(sheet: dict, title: str) -> str:
-    out = [f"# {title}", "", f"{sheet['pairs']} pairs.", ""]
+    from handedit.markdown import md
+
+    out = [f"# {md(title)}", "", f"{sheet['pairs']} pairs.", ""]
     for k, rows in sheet["counts"].items():
-        out += [f"## Pairs per {k}", "", f"| {k} | pairs |", "|---|---:|"]
-        out += [f"| {name} | {n:,} |" for name, n in sorted(rows.items())] + [""]
+        out += [f"## Pairs per {md(k)}", "", f"| {md(k)} | pairs |", "|---|---:|"]
+        out += [f"| {md(name)} | {n:,} |" for name, n in sorted(rows.items())] + [""]
     out += ["## Kept rate per stage", "", "| stage | OK | given | rate |", "|---|---:|---:|---:|"]
     for stage, r in sheet["kept_rate"].items():
         rate = f"{100 * r['rate']:.2f}%" if r["rate"] is not None else "-"
@@ -66,8 +68,8 @@ def markdown(sheet: dict, title: str) -> str:
     rej = sheet["rejections"]
     total = rej["total"]
     out += ["", "## Rejections by primary cause", "", "| Primary failure cause | Share of non-kept frames |", "|---|---:|"]
-    out += [f"| {r['cause']} | {r['count']:,} / {total:,} ({100 * r['share']:.2f}%) |" for r in rej["by_cause"]]
+    out += [f"| {md(r['cause'])} | {r['count']:,} / {total:,} ({100 * r['share']:.2f}%) |" for r in rej["by_cause"]]
     out += [f"| Total | {total:,} / {total:,} ({100 if total else 0}%) |", "",
             "| stage | reason | count | share |", "|---|---|---:|---:|"]
-    out += [f"| {r['stage']} | {r['reason']} | {r['count']:,} | {100 * r['share']:.2f}% |" for r in rej["by_reason"]]
+    out += [f"| {md(r['stage'])} | {md(r['reason'])} | {r['count']:,} | {100 * r['share']:.2f}% |" for r in rej["by_reason"]]
     return "\n".join(out) + "\n"

@@ -43,8 +43,15 @@ PNG_RATIO = 0.5  # PNG size / raw size for camera frames (masks compress to almo
 
 
 def sample_key(clip: str, embodiment: str, frame: int) -> str:
-    """A pair's WebDataset key (no dots: WebDataset splits member names at the first)."""
-    return f"{clip}__{embodiment}__{int(frame):06d}".replace(".", "_")
+    """A pair's WebDataset key, unique per pair. It holds no dot (WebDataset splits member
+    names at the first): a name with dots has them replaced and a short hash of the name
+    added, so ``take.1`` and ``take_1`` stay apart."""
+    def part(name: str) -> str:
+        if "." not in name:
+            return name
+        return name.replace(".", "_") + "-" + hashlib.blake2b(name.encode(), digest_size=4).hexdigest()
+
+    return f"{part(clip)}__{part(embodiment)}__{int(frame):06d}"
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ import numpy as np
 import pydantic
 
 from handedit.camera import Intrinsics
-from handedit.digests import file_sha256
+from handedit.digests import file_digest, file_sha256
 from handedit.images import read_rgb
 from handedit.sources.base import ClipChunk, ClipInfo, SourceError, take_clips
 
@@ -88,6 +88,11 @@ class SequenceSource:
         s = self.seq
         digests = {p.name: file_sha256(p) for p in s.files}
         ident = {"files": digests, "window": self.window, "size": list(self.size), "meta": s.meta}
+        a, b = self.window  # the pixels, by content: the window's image files (or the video)
+        if s.images:
+            ident["images"] = hashlib.sha256("".join(file_digest(p) for p in s.images[a:b]).encode()).hexdigest()
+        if s.video is not None and s.video not in s.files:
+            ident["video"] = file_digest(s.video)
         if s.object_mesh is not None:  # the mesh as loaded (contact QC and occlusion depth read it), by content
             ident["object_mesh"] = hashlib.sha256(b"".join(np.ascontiguousarray(a).tobytes() for a in s.object_mesh)).hexdigest()
         w, h = self.size

@@ -57,9 +57,9 @@ class SyntheticSpec(pydantic.BaseModel):
     kind: Literal["synthetic"] = "synthetic"
     clip_id: str = "synthetic-0000"
     seed: int = 0
-    width: int = 640
-    height: int = 480
-    n_frames: int = 48
+    width: int = pydantic.Field(640, ge=16, strict=True)
+    height: int = pydantic.Field(480, ge=16, strict=True)
+    n_frames: int = pydantic.Field(48, ge=1, strict=True)
     fps: float = 30.0
     still: bool = pydantic.Field(False, description="the hand holds its grasp (the script's moment STILL_AT) for the whole "
                                  "clip while the head camera keeps swaying: restoration never sees behind it")

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -48,7 +49,8 @@ class VideoSpec(pydantic.BaseModel):
 
     @property
     def id(self) -> str:
-        return self.clip_id or self.path.stem
+        """``clip_id``, else the file's name with what a clip id cannot hold replaced by '-'."""
+        return self.clip_id or re.sub(r"[^A-Za-z0-9._-]+", "-", self.path.stem).strip("-.") or "video"
 
     def files(self) -> list[Path]:
         return [self.path, *([self.keypoints_path] if self.keypoints_path else [])]

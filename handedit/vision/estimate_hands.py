@@ -41,6 +41,7 @@ import cv2
 import numpy as np
 import pydantic
 
+from handedit.models.runtime import OnnxRuntime
 from handedit.camera import Intrinsics, project
 from handedit.keypoints import N_JOINTS, PARENT, SIDES
 from handedit.reasons import STATUS_DTYPE, Reason
@@ -66,6 +67,7 @@ class EstimateHandsConfig(pydantic.BaseModel):
                                             "(default: $HANDEDIT_HAND_MODEL_DIR, else the cache `handedit models fetch` fills)")
     variant: Literal["full", "lite"] = "full"
     model_path: Path | None = pydantic.Field(None, description="optional ONNX hand-pose plug-in (handedit.models.hand_pose)")
+    onnx: OnnxRuntime = OnnxRuntime()  # how the model runs (providers, threads): part of the key
     # depth of the hand: "bones" (a human hand's bone lengths on the landmarks' rays) or
     # "pnp" (the model's metric world landmarks fitted to the 2-D ones); see the module doc
     depth: Literal["bones", "pnp"] = "bones"

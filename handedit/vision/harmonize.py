@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 import pydantic
 
+from handedit.models.runtime import OnnxRuntime
 from handedit.images import pixel_row, pixels
 from handedit.reasons import STATUS_DTYPE, Reason
 from handedit.metrics.similarity import bbox
@@ -38,6 +39,7 @@ class HarmonizeConfig(pydantic.BaseModel):
 
     method: Literal["classical", "onnx"] = "classical"
     model_path: str | None = None  # ONNX harmonizer (method="onnx"), see handedit.models.harmonizer
+    onnx: OnnxRuntime = OnnxRuntime()  # how the model runs (providers, threads): part of the key
     work_max_side: int = pydantic.Field(1024, ge=32)  # model input size when the model's is dynamic
     strength: float = pydantic.Field(0.35, ge=0.0, le=1.0)
     match_std: bool = True  # also move the spread (contrast), not just the mean
@@ -146,7 +148,7 @@ def harmonize(image: np.ndarray, robot_mask: np.ndarray, cfg: HarmonizeConfig = 
     if cfg.method == "onnx":
         from handedit.models.harmonizer import harmonize_onnx_frame, load_harmonizer
 
-        model = load_harmonizer(cfg.model_path)
+        model = load_harmonizer(cfg.model_path, cfg.onnx)
     for i in range(len(image)):
         if model is not None:
             res = harmonize_onnx_frame(model, image[i], robot_mask[i], cfg) if robot_mask[i].any() else None

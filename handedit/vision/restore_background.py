@@ -31,6 +31,7 @@ import numpy as np
 import pydantic
 import xxhash
 
+from handedit.models.runtime import OnnxRuntime
 from handedit.images import pixels
 from handedit.lru import MISSING, Lru
 from handedit.reasons import STATUS_DTYPE, Reason
@@ -45,6 +46,7 @@ class RestoreConfig(pydantic.BaseModel):
 
     method: Literal["classical", "onnx"] = "classical"
     model_path: str | None = None  # ONNX video inpainter (method="onnx")
+    onnx: OnnxRuntime = OnnxRuntime()  # how the model runs (providers, threads): part of the key
     work_max_side: int = pydantic.Field(640, ge=32)  # model input size when the model's is dynamic
     window: int = pydantic.Field(12, ge=0)  # frames each side of a target the caller should provide
     max_sources: int = pydantic.Field(8, ge=0)  # frames of the window used per target (spread evenly)

@@ -49,6 +49,7 @@ import cv2
 import numpy as np
 import pydantic
 
+from handedit.models.runtime import OnnxRuntime
 from handedit.camera import Intrinsics, project
 from handedit.keypoints import MCPS, N_JOINTS, PARENT, WRIST
 from handedit.metrics.similarity import bbox
@@ -67,6 +68,7 @@ class SegmentConfig(pydantic.BaseModel):
 
     method: Literal["classical", "onnx"] = "classical"
     model_path: str | None = None  # ONNX segmenter (method="onnx"), see handedit.models.segmenter
+    onnx: OnnxRuntime = OnnxRuntime()  # how the model runs (providers, threads): part of the key
     min_model_confidence: float = pydantic.Field(0.75, ge=0, le=1)  # paper's QC threshold for a model's score
     work_max_side: int = pydantic.Field(480, ge=64)  # processing resolution (longest side)
     grabcut_iters: int = pydantic.Field(3, ge=1)
