@@ -23,9 +23,11 @@ from pathlib import Path
 
 
 def prefect_defaults() -> None:
-    """No telemetry, and quiet Prefect logs unless the user asked otherwise."""
+    """No telemetry; INFO logs reach the Prefect UI (counts, links, the verdict) while the
+    terminal shows warnings and errors only, unless the user asked otherwise."""
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
-    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "INFO")
+    os.environ.setdefault("PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL", "WARNING")
     # Without PREFECT_API_URL a temporary local API is started; its default 20 s start-up
     # budget is too short on a loaded 2-core machine.
     os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "180")

@@ -37,6 +37,7 @@ from tqdm import tqdm
 import handedit
 from handedit.digests import model_digests as stage_model_digests, robot_digest
 from handedit.embodiments import EmbodimentError, describe_embodiment, get_embodiment, resolve_urdf
+from handedit.flows import progress as progress_of
 from handedit.flows.api import run_url
 from handedit.flows.config import CurateConfig, PreflightError, dashboard_link
 from handedit.flows.plan import iter_shards, run_key
@@ -150,11 +151,13 @@ def curate_shard(config_json: str, shard_id: str, specs_json: list[str], embodim
                                                             emb_id=emb["id"], wait_for=[fc]))
     stages: dict = {}
     errors, source_errors, task_failures, recovered, recomputed = [], {}, [], [], Counter()
-    for fut in [*clip_futures, *emb_futures]:
+    n_clip_tasks = len(clip_futures)
+    for i, fut in enumerate([*clip_futures, *emb_futures]):
         try:
             res = fut.result(raise_on_failure=False)
         except Exception as exc:  # noqa: BLE001 - e.g. never run because its clip task failed
             res = exc
+        progress_of.report(run_id, res, embodiment=i >= n_clip_tasks)
         if not isinstance(res, dict):
             task_failures.append(f"{fut.task_run_id}: {res!r}")
             continue
@@ -310,7 +313,18 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
     summary = {"store": loc.store_url, "stages": {}, "errors": [], "clip_errors": {}, "run": holder,
                "shards": {"ran": 0, "skipped": 0, "held": 0, "incomplete": 0}, "held_by_others": {},
                "recovered": [], "recomputed": {}}
-    bar = tqdm(desc="curate", unit="shard", disable=not progress)
+    bar = tqdm(desc="curate", unit="pair", disable=not progress, total=None)
+    tally = progress_of.start(holder, len(embs))
+    progress_of.list_in_background(tally, iter_shards(config.sources, config.clips, config.shard_size))
+    artifact = progress_of.ProgressArtifact(tally)
+
+    def show(final: bool = False) -> None:
+        """The bar and the Prefect artifact, from the progress the shard flows report."""
+        bar.total = tally.planned_pairs()
+        bar.n = tally.pairs_done
+        bar.set_postfix_str(tally.describe(), refresh=True)
+        artifact.update(force=final)
+
     with config.cluster.connect() as address:
         summary["dashboard"] = link = dashboard_link(address)
         summary["prefect_run"] = ui = run_url()
@@ -334,6 +348,7 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
                 if done is None:
                     if lost:
                         raise lost[0]
+                    show()
                     time.sleep(0.2)
                     continue
                 log = in_flight.pop(done).result()
@@ -346,7 +361,7 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
                     summary["recomputed"][why] = summary["recomputed"].get(why, 0) + n
                 summary["shards"]["ran"] += 1
                 summary["shards"]["incomplete"] += 0 if log["complete"] else 1
-                bar.update()
+                show()
             if lost:
                 raise lost[0]
 
@@ -357,7 +372,7 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
                 if is_complete(manifest, digest) and has_partitions(loc, shard.id) \
                         and not _objects_missing(loc, manifest, config.check_skipped_shards):
                     summary["shards"]["skipped"] += 1
-                    bar.update()
+                    show()
                     continue
                 collect(block=False)  # wait for a free slot first: claim only what runs now
                 claim, other = try_claim(loc, shard.id, holder, config.claim_lease_s, take_over=config.take_over)
@@ -373,7 +388,7 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
                     # the claim is the one that counts
                     release(loc, claim)
                     summary["shards"]["skipped"] += 1
-                    bar.update()
+                    show()
                     continue
                 leases.add(claim)
                 args = (config_json, shard.id, [s.model_dump_json() for s in shard.specs], emb_dicts, holder, digest, version,
@@ -389,6 +404,8 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
             stop.set()
             pool.shutdown(wait=True)
             leases.close()
+            show(final=True)
+            progress_of.stop(holder)
             bar.close()
     for clip_id, err in summary["clip_errors"].items():
         logger.error("clip %s rejected: %s", clip_id, err)

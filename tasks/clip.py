@@ -105,6 +105,7 @@ class WalkResult:
     recomputed: dict = field(default_factory=dict)  # "stage[embodiment]: what changed" -> chunks
     source_error: str | None = None
     seconds: float = 0.0
+    frames: int = 0  # the clip's frames (what the run's progress counts)
 
     def count(self, stage: str, what: str) -> None:
         self.stages.setdefault(stage, {"ran": 0, "skipped": 0, "failed": 0})[what] += 1
@@ -413,6 +414,7 @@ def run_clip(job: ClipJob) -> dict:
     except SourceError as exc:
         result.source_error = str(exc)
         return vars(result)
+    result.frames = plan.n_frames
     root = open_root(job.store)
     create_clip_units(root, config, plan, job.scopes)
     nodes = clip_nodes(plan, job.scopes, config)
@@ -433,6 +435,7 @@ def run_embodiment(job: EmbodimentJob) -> dict:
     if plan is None:
         result.source_error = "the clip could not be ingested (see its clip-level rejection)"
         return vars(result)
+    result.frames = plan.n_frames
     create_embodiment_units(root, config, plan, emb)
     robot = Robot(emb["id"], emb["scope"], emb.get("robot_digest", ""))
     nodes = embodiment_nodes(plan, robot, config)

@@ -53,7 +53,8 @@ def test_a_run_that_keeps_nothing_fails_in_prefect_and_exits_1(tmp_path, capsys,
     st, arts = asyncio.run(state())
     assert st.is_failed() and "kept 0 of 8" in st.message
     # the outcome in the flow run's Artifacts: frames and rejections per stage, the verdict with the store
-    assert {"curate-frames", "curate-rejections", "curate-outcome"} <= set(arts)
+    assert {"curate-frames", "curate-rejections", "curate-outcome", "curate-progress"} <= set(arts)
+    assert arts["curate-progress"].data == 100.0  # every planned pair was made (and rejected)
     assert "ASSETS_MISSING" in str(arts["curate-rejections"].data) and "Failed" in str(arts["curate-outcome"].data)
     assert str(tmp_path / "run") in str(arts["curate-outcome"].data)
 
