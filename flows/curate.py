@@ -189,6 +189,7 @@ def curate_shard(config_json: str, shard_id: str, specs_json: list[str], embodim
     log = {"run": run_id, "shard": shard_id, "started": started, "finished": now_iso(), "stages": stages,
            "errors": errors[:50], "task_failures": task_failures, "clip_errors": source_errors, "complete": complete,
            "recovered": recovered, "recomputed": dict(recomputed), "links": links or {}}
+    _shard_artifact(shard_id, log)
     try:
         write_run_log(loc, shard_id, run_id, log)
         write_manifest(loc, shard_id, {"shard": shard_id, "clips": clips, "digest": digest, "complete": complete,
@@ -322,7 +323,7 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
         """The bar and the Prefect artifact, from the progress the shard flows report."""
         bar.total = tally.planned_pairs()
         bar.n = tally.pairs_done
-        bar.set_postfix_str(tally.describe(), refresh=True)
+        bar.set_postfix_str(tally.brief(), refresh=True)
         artifact.update(force=final)
 
     with config.cluster.connect() as address:
@@ -420,6 +421,18 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
     logger.info("curate finished: %s of %s frame x embodiment pairs kept", summary["outcome"]["kept"],
                 summary["outcome"]["pairs"])
     return summary
+
+
+def _shard_artifact(shard_id: str, log: dict) -> None:
+    """One shard's outcome in Prefect's UI (its flow run's Artifacts tab): chunks per stage."""
+    import re
+
+    from prefect.artifacts import create_table_artifact
+
+    rows = [{"stage": stage, **counts} for stage, counts in log["stages"].items()]
+    key = "shard-" + re.sub(r"[^a-z0-9-]+", "-", shard_id.lower()).strip("-")
+    verdict = "complete" if log["complete"] else f"incomplete ({len(log['errors']) + len(log['task_failures'])} error(s))"
+    create_table_artifact(rows, key=key[:100], description=f"shard {shard_id}: chunks ran/skipped/failed per stage; {verdict}")
 
 
 def publish_artifacts(summary: dict) -> None:

@@ -63,13 +63,17 @@ class Progress:
         planned = self.planned_pairs()
         return min(self.pairs_done / planned, 1.0) if planned else 0.0
 
+    def brief(self) -> str:
+        """What the bar adds to its own counts: the ETA and how much of the plan is known."""
+        eta = self.eta_s()
+        when = time.strftime("%H:%M:%S", time.gmtime(eta)) if eta is not None else "?"
+        return f"ETA {when}, {len(self.clip_frames)} of {self.clips_listed}{'' if self.listing_done else '+'} clips planned"
+
     def describe(self) -> str:
-        planned, eta = self.planned_pairs(), self.eta_s()
+        planned = self.planned_pairs()
         approx = "" if self.listing_done and len(self.clip_frames) >= self.clips_listed else "~"
         total = f"{approx}{planned}" if planned is not None else "?"
-        when = time.strftime("%H:%M:%S", time.gmtime(eta)) if eta is not None else "?"
-        return (f"{self.pairs_done} of {total} frame x embodiment pairs, {self.rate():.1f}/s, ETA {when} "
-                f"({len(self.clip_frames)} of {self.clips_listed}{'' if self.listing_done else '+'} clips planned)")
+        return f"{self.pairs_done} of {total} frame x embodiment pairs, {self.rate():.1f}/s, {self.brief()}"
 
 
 def start(run_id: str, embodiments: int) -> Progress:

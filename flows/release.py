@@ -212,7 +212,26 @@ def release(cfg: ReleaseConfig) -> dict:
                          f"again to publish the next version")
     logger.info("published %s: %d pairs in %d shards (%d reused) in %.0f s", version, len(table), len(used),
                 manifest["counts"]["shards_reused"], time.time() - t0)
+    _publish_artifact(loc, manifest, changes)
     return manifest
+
+
+def _publish_artifact(loc: Location, manifest: dict, changes: dict) -> None:
+    """The release in Prefect's UI (the run's Artifacts tab): version, counts, changes and where
+    its manifest, datasheet and changelog are."""
+    from prefect.artifacts import create_markdown_artifact
+
+    from handedit.markdown import md
+
+    v, c = manifest["version"], manifest["counts"]
+    lines = [f"# release {md(v)} (parent {md(manifest['parent'] or '-')})", "",
+             f"- pairs: {c['pairs']} in {c['shards']} shard(s), {c['shards_reused']} reused from the parent",
+             f"- changes: {c['added']} added, {c['removed']} removed, {c['changed']} changed"
+             + (f" (first added: {md(', '.join(changes['added'][:5]))})" if changes["added"] else ""),
+             f"- manifest: `{loc.path(v, 'manifest.json')}`",
+             f"- datasheet: `{loc.path(v, 'datasheet.md')}`",
+             f"- changelog: `{loc.path(v, 'changelog.md')}`"]
+    create_markdown_artifact("\n".join(lines), key="release", description=f"handedit release {v}")
 
 
 @flow(name="release-shards")

@@ -175,6 +175,22 @@ def test_datasheet_families_follow_the_pipeline_order():
     assert tuple(FAMILY) == STAGES  # the primary cause is the earliest stage in this order
 
 
+def test_a_release_run_publishes_its_artifact(released):
+    """The release in Prefect's UI: version, counts and where its datasheet and changelog are."""
+    import asyncio
+
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
+
+    async def latest():
+        async with get_client() as client:
+            return await client.read_artifacts(artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=["release"])))
+
+    arts = asyncio.run(latest())
+    texts = [str(a.data) for a in arts]
+    assert any("# release v0002 (parent v0001)" in t and "datasheet.md" in t and "changelog.md" in t for t in texts), texts
+
+
 def test_a_hostile_manifest_renders_inert_in_headless_chromium(released):
     """Manifest fields and links are data: markup in them is shown as text, scripts never run."""
     import json as js
