@@ -19,13 +19,13 @@ shard with failures stays incomplete, so the next run retries exactly what faile
 from __future__ import annotations
 
 import contextvars
-import logging
-from collections import Counter
 import json
+import logging
 import os
 import subprocess
 import threading
 import time
+from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -48,11 +48,10 @@ from handedit.storage.layout import SCHEMA_VERSION, STAGES
 from handedit.storage.ledger import read_ledger, status_counts
 from handedit.storage.shards import (INDEX, LEDGER, has_partitions, is_complete, new_holder, read_manifest, release,
                                      renew, try_claim, write_manifest, write_partition, write_run_log)
-from handedit.storage.store import CorruptChunk, jsonable, now_iso
+from handedit.storage.store import CorruptChunk, jsonable, now_iso, store_full
 from handedit.storage.summary import index_rows
-from handedit.tasks.clip import ClipJob, EmbodimentJob, curate_clip, curate_embodiment, stage_version_params
-from handedit.tasks.common import store_full
 from handedit.tasks import STAGES as STAGE_DECLARATIONS
+from handedit.tasks.clip import ClipJob, EmbodimentJob, curate_clip, curate_embodiment, stage_version_params
 
 
 

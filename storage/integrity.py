@@ -179,7 +179,7 @@ class VerifiedReads:
         self._chunk: dict[tuple[str, str], tuple[int, int, np.ndarray]] = {}
 
     def frame(self, unit: Unit, name: str, t: int) -> np.ndarray:
-        from handedit.storage.store import CorruptChunk, StoreError, digest, read_array
+        from handedit.storage.store import CorruptChunk, StoreError, digest, object_file, read_array
 
         held = self._chunk.get((unit.path, name))
         if held is None or not held[0] <= t < held[1]:
@@ -193,17 +193,12 @@ class VerifiedReads:
             data = read_array(arr, slice(rec.start, rec.stop))
             got = digest(data, like=rec.outputs[name])
             if got != rec.outputs[name]:
+                keys = object_keys(arr, rec.start, rec.stop)
                 raise CorruptChunk(arr.path, rec.start, rec.stop, f"its bytes changed after they were written (digest "
                                    f"{got[:12]} != recorded {rec.outputs[name][:12]})",
-                                   _object_path(arr, rec.start, rec.stop))
+                                   object_file(arr, keys[0]) if keys else "")
             held = self._chunk[(unit.path, name)] = (rec.start, rec.stop, data)
         return held[2][t - held[0]]
-
-
-def _object_path(arr: zarr.Array, start: int, stop: int) -> str:
-    keys = object_keys(arr, start, stop)
-    root = getattr(arr.store, "root", None) or getattr(arr.store, "path", "")
-    return f"{str(root).rstrip('/')}/{keys[0]}" if keys else ""
 
 
 def root_damaged(loc) -> bool:

@@ -57,6 +57,23 @@ class StoreError(RuntimeError):
     """A store that cannot be opened or does not match this code's schema."""
 
 
+class StoreFull(StoreError):
+    """The store's device is full (or over quota, or read-only): the run fails, naming the
+    file; no frame is rejected for it (a rejection would be published as a removed pair)."""
+
+
+def store_full(exc: BaseException, where: str = "") -> StoreFull | None:
+    """A ``StoreFull`` for an OSError that no retry can help (no space, quota, read-only);
+    ``where``: what was being written when the error does not name its file."""
+    import errno
+
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS):
+        where = exc.filename or where or "the run's files"
+        return StoreFull(f"cannot write {where}: {exc.strerror or exc} (errno {exc.errno}); free space on that device (or "
+                         f"curate into another --out), then run again: committed chunks are kept")
+    return None
+
+
 class CorruptChunk(StoreError):
     """Stored bytes that do not decode (or fail their checksum), named down to the file."""
 
@@ -69,7 +86,8 @@ class CorruptChunk(StoreError):
         return (CorruptChunk, (self.array_path, self.start, self.stop, self.cause, self.file))
 
 
-def _object_file(array: zarr.Array, key: str) -> str:
+def object_file(array: zarr.Array, key: str) -> str:
+    """The file (or object URL) that holds ``key`` of ``array``'s store, for messages."""
     store = array.store
     root = getattr(store, "root", None) or getattr(store, "path", "")
     return f"{str(root).rstrip('/')}/{key}" if root else key
@@ -93,7 +111,7 @@ def read_array(array: zarr.Array, selection=slice(None)) -> np.ndarray:
         try:
             array[start:stop]
         except Exception:  # noqa: BLE001 - this is the bad object
-            raise CorruptChunk(array.path, start, stop, reason, _object_file(array, object_keys(array, start, stop)[0])) from None
+            raise CorruptChunk(array.path, start, stop, reason, object_file(array, object_keys(array, start, stop)[0])) from None
     raise CorruptChunk(array.path, 0, array.shape[0], reason)
 
 

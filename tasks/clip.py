@@ -44,8 +44,8 @@ from handedit.storage.location import location_of
 from handedit.storage.provenance import ChunkRecord, changed_inputs, drop_records, is_current, provenance_key
 from handedit.storage.store import CorruptChunk, create_previews
 from handedit.tasks import STAGES
-from handedit.tasks.common import (RETRIES, RETRY_DELAYS, ChunkJob, StoreFull, execute, failure_record, is_transient,
-                                   open_root, store_full)
+from handedit.storage.store import StoreFull, store_full
+from handedit.tasks.common import RETRIES, RETRY_DELAYS, ChunkJob, execute, failure_record, is_transient, open_root
 from handedit.tasks.plan import ClipPlan, clip_plan, plan_json, stored_plan
 from handedit.tasks.stage import Inputs, Robot, key_inputs, nodes as stage_nodes
 

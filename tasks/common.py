@@ -18,7 +18,7 @@ import zarr
 from handedit.reasons import Reason
 from handedit.secrets import redact
 from handedit.storage import ChunkRecord, Unit, write_chunk
-from handedit.storage.store import now_iso
+from handedit.storage.store import now_iso, store_full
 from handedit.tasks.plan import ClipPlan
 
 # Failures worth another attempt: I/O hiccups, lost connections, resource pressure.
@@ -33,23 +33,6 @@ class TransientError(RuntimeError):
 
 class InjectedFault(RuntimeError):
     """Raised where ``CurateConfig.inject_faults`` asks for it (drills and tests)."""
-
-
-class StoreFull(RuntimeError):
-    """The store's device is full (or over quota, or read-only): the run fails, naming the
-    file; no frame is rejected for it (a rejection would be published as a removed pair)."""
-
-
-def store_full(exc: BaseException, where: str = "") -> StoreFull | None:
-    """A ``StoreFull`` for an OSError that no retry can help (no space, quota, read-only);
-    ``where``: what was being written when the error does not name its file."""
-    import errno
-
-    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS):
-        where = exc.filename or where or "the run's files"
-        return StoreFull(f"cannot write {where}: {exc.strerror or exc} (errno {exc.errno}); free space on that device (or "
-                         f"curate into another --out), then run again: committed chunks are kept")
-    return None
 
 
 def is_transient(exc: BaseException) -> bool:
