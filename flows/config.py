@@ -20,7 +20,7 @@ from handedit.qc import QCConfig
 from handedit.render.stage import RenderConfig
 from handedit.retarget import RetargetConfig
 from handedit.sources import SourceSpec, TreeSpec
-from handedit.tasks.ingest import IngestConfig
+from handedit.sources.base import IngestConfig
 from handedit.vision.registration import RegistrationConfig
 from handedit.vision.composite import CompositeConfig
 from handedit.vision.estimate_hands import EstimateHandsConfig

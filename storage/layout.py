@@ -222,6 +222,7 @@ PER_HAND_STAGES = frozenset(s for s, specs in ARRAYS.items() if _HAND_STATUS in 
 
 # Which mask of the segment stage a scope uses.
 SCOPE_MASK = {"hand": "hand_mask", "hand_arm": "handarm_mask"}
+REVIEWS_ATTR = "reviews"  # a hand-arm retarget unit's operator decisions (``handedit review``; an input of its key)
 
 LEDGER_COLUMNS: tuple[tuple[str, str], ...] = (
     ("stage", "str"),

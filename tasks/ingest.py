@@ -8,20 +8,13 @@ not the spec's paths."""
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import ClassVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict
 
 from handedit.sources import frame_status, open_source_json
-from handedit.sources.base import on_sides
+from handedit.sources.base import IngestConfig, on_sides
 from handedit.tasks.common import ChunkJob, StageOutput
 from handedit.tasks.stage import At, Inputs, Stage, Value
-
-
-class IngestConfig(BaseModel):
-    VERSION: ClassVar[int] = 2  # 2: the object's depth (from the source's mesh and pose)
-    model_config = ConfigDict(frozen=True, extra="forbid")
 
 
 def reads(at: At) -> list:

@@ -15,10 +15,10 @@ from handedit.retarget import RetargetConfig
 from handedit.retarget.qc import RetargetQCConfig
 from handedit.retarget.sides import SidesResult, preview_intrinsics, retarget_hand_arm_sides, retarget_sides
 from handedit.storage import Unit
+from handedit.storage.layout import REVIEWS_ATTR
 from handedit.tasks.common import ChunkJob, StageOutput
 from handedit.tasks.stage import At, Attr, Inputs, Stage, Value
 
-REVIEWS = "reviews"  # the retarget unit's attribute ``handedit review`` writes
 REGISTERED = ["keypoints", "keypoints_valid", "hand_status", "status"]
 
 
@@ -38,7 +38,7 @@ def reads(at: At) -> list:
     if plan.has_object:  # the object's mesh comes from the source
         out.append(Value("source", plan.fingerprint))
     if hand_arm:
-        out.append(Attr(at.unit, REVIEWS))
+        out.append(Attr(at.unit, REVIEWS_ATTR))
     return out
 
 
@@ -90,7 +90,7 @@ def _hand_arm_body(inp: Inputs, job: ChunkJob) -> StageOutput:
     plan = job.plan
     arrays = _inputs(inp, job)
     sides = plan.hands
-    reviews = inp.attr(job.unit, REVIEWS) or {}  # operators' choices from `handedit review`, per hand
+    reviews = inp.attr(job.unit, REVIEWS_ATTR) or {}  # operators' choices from `handedit review`, per hand
     choices = {s: reviews[s]["choice"] for s in sides if s in reviews}
     world = plan.world
     wfc = arrays["world_from_camera"] if world else None

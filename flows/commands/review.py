@@ -23,7 +23,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from handedit.tasks.retarget import REVIEWS as REVIEWS_ATTR  # the attribute the retarget stage declares
+from handedit.storage.layout import REVIEWS_ATTR
 
 
 def _summaries(root, clip: str | None = None, emb: str | None = None,

@@ -18,12 +18,20 @@ coordinates) with an optional ``"support_plane": [n, d]`` (the table, n . p + d 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import ClassVar, Protocol, runtime_checkable
 
 import numpy as np
+import pydantic
 
 from handedit.camera import Intrinsics
 from handedit.keypoints import ARM_JOINTS, N_JOINTS
+
+
+class IngestConfig(pydantic.BaseModel):
+    """The ingest stage's parameters (none yet); its VERSION is the source-to-store contract's."""
+
+    VERSION: ClassVar[int] = 2  # 2: the object's depth (from the source's mesh and pose)
+    model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
 
 
 class SourceError(ValueError):
