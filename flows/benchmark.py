@@ -79,16 +79,33 @@ def build_testset(store: str | Path, bench: str | Path, n_sources: int = 1000, e
 
 
 class StoreItems:
-    """Test-set inputs from a curated store."""
+    """Test-set inputs from a curated store. A hand-arm frame whose base waits for an operator
+    (``review: manual``, not yet decided) is not an item, as it is not released
+    (``held_back_unreviewed`` counts them)."""
 
     def __init__(self, root, clips, pseudo_gt: str = "harmonized"):
         self.root, self.clips, self.pseudo_gt = root, clips, pseudo_gt
         self.reads = VerifiedReads(root)
         self.embodiments = {e: get_embodiment(e).track for c in clips
                             for e in (root[f"clips/{c}/embodiments"].group_keys() if f"clips/{c}/embodiments" in root else [])}
+        self.held_back_unreviewed = 0
 
     def kept(self, clip: str, emb: str) -> np.ndarray | None:
-        return _kept(self.root, clip, emb)
+        from handedit.flows.release import pending_review
+        from handedit.storage.ledger import unit_sides
+        from handedit.storage.provenance import read_records
+
+        kept = _kept(self.root, clip, emb)
+        if kept is None or self.embodiments.get(emb) != "hand_arm":
+            return kept
+        pending = pending_review(read_records(self.root, Unit("retarget", clip, embodiment=emb)))
+        qc = Unit("qc", clip, embodiment=emb)
+        waiting = [k for k, side in enumerate(unit_sides(self.root, qc)) if side in pending]
+        if not waiting:
+            return kept
+        held = kept & (read_array(self.root[qc.path]["hand_status"])[:, waiting] == Reason.OK).any(1)
+        self.held_back_unreviewed += int(held.sum())
+        return kept & ~held
 
     def item(self, clip: str, emb: str, frame: int, scope: str):
         """(src, gt, human mask, robot mask, object mask or None) of one kept pair, each
@@ -192,6 +209,7 @@ def _build(source, store, out: BenchDir, n_sources, embodiments, bank, seed, tra
             "pseudo_gt": getattr(source, "pseudo_gt", "harmonized"),
             "references": f"toolkit: {toolkit_references}" if toolkit_references else ("bank" if bank else None),
             "seed": seed, "items": [asdict(i) for i in items],
+            "held_back_unreviewed": getattr(source, "held_back_unreviewed", 0),
             "tracks": {s: sorted({i.embodiment for i in items if i.scope == s}) for s in tracks}}
     write_json(out.meta, meta)
     return meta

@@ -3,6 +3,8 @@
 Occlusion by the object: the source's object mask always; plus the object's depth where
 the source knows its geometry (ingest stored it, once per source frame: its mesh and
 pose rasterized, ``handedit.vision.object_depth``), so the nearer surface wins per pixel.
+A source without either (EgoDex, a video): what hid the human fingers, from the registered
+keypoints and the hand masks (``handedit.vision.occluder``), stays in front of the robot.
 Hands whose robot is not drawn get their source pixels back; replaced hands are checked
 for visible human residue (beside the robot: HUMAN_VISIBLE; in the restored background where
 no robot covers it: RESIDUE), and hand-arm robots for lying where the human arm was (OFF_ARM).
@@ -21,6 +23,7 @@ from handedit.tasks.stage import At, Inputs, Stage
 from handedit.vision.arm import limbs, off_arm_shares, off_arm_status
 from handedit.vision.composite import CompositeConfig, composite as composite_frames, robot_windows
 from handedit.vision.object_depth import object_occluder
+from handedit.vision.occluder import hidden_fingers
 
 RESTORED = ("background", "hole", "status")
 RENDERED = ("rgba", "depth", "robot_side", "hand_status", "status")
@@ -53,9 +56,14 @@ def body(inp: Inputs, job: ChunkJob) -> StageOutput:
     intr = Intrinsics(**plan.intrinsics)
     cfg = CompositeConfig(**job.params)
     windows = robot_windows(ren["rgba"], cfg)
-    occluder, occluder_depth = None, None
+    occluder, occluder_depth, occluder_tag = None, None, ""
     if plan.has_object:
         occluder, occluder_depth = object_occluder(src["object_mask"], src["object_depth"])
+        occluder_tag = "+object-mesh-depth" if occluder_depth is not None else ""
+    elif cfg.image_occluder is not None and plan.has_keypoints:  # in front of the fingers, so in front of the robot
+        occluder = hidden_fingers(reg["keypoints"], reg["keypoints_valid"], seg[SCOPE_MASK[scope]], intr, cfg.image_occluder,
+                                  frames=src["frames"])
+        cfg, occluder_tag = cfg.model_copy(update={"occluder_in_front_without_depth": True}), "+occluder-from-hidden-fingers"
     robot_depth = None if occluder_depth is None else inp.read(Unit("render", clip, embodiment=emb), ["depth"])["depth"]
     ready = gate(bg["status"], ren["status"])
     replace = ready[:, None] & (ren["hand_status"] == Reason.OK)
@@ -74,7 +82,7 @@ def body(inp: Inputs, job: ChunkJob) -> StageOutput:
     upstream = ren["hand_status"]
     hand_status = np.where(replace, own,
                            np.where(upstream == Reason.ABSENT, Reason.ABSENT, Reason.UPSTREAM)).astype(np.int16)
-    method = result.method + ("+object-mesh-depth" if occluder_depth is not None else "")
+    method = result.method + occluder_tag
     return StageOutput({"image": result.image, "robot_mask": result.robot_mask}, combine(per_frame(hand_status), ready),
                        method=method, hand_status=hand_status, extra=extra)
 

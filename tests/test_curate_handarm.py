@@ -123,9 +123,9 @@ def test_review_choose_rerun_and_previews(run, dask_cluster, tmp_path, capsys):
     np.testing.assert_allclose(world_from_base, rec["candidates"][k]["camera_from_base"], atol=1e-5)
 
 
-def test_unreviewed_bases_are_held_back_from_releases(run, monkeypatch):
+def test_unreviewed_bases_are_held_back_from_releases_and_the_benchmark(run, monkeypatch):
     """``review: manual``: a side whose base waits for ``handedit review`` (``pending:manual``)
-    publishes none of its pairs; the release plan counts them as held back."""
+    publishes none of its pairs and gives the benchmark none; both count them as held back."""
     import dataclasses
 
     import handedit.flows.release as rel
@@ -144,3 +144,11 @@ def test_unreviewed_bases_are_held_back_from_releases(run, monkeypatch):
     monkeypatch.setattr(rel, "read_records", lambda r, u: pending if u.stage == "retarget" else read_records(r, u))
     held, source = rel.plan_pairs(Location(str(config.out)), root, [clip], [EMB], 1 << 30)
     assert held == [] and source["held_back_unreviewed"] == len(pairs)
+    # nor are they benchmark items
+    import handedit.storage.provenance as provenance
+    from handedit.flows.benchmark import StoreItems
+
+    free = StoreItems(root, [clip]).kept(clip, EMB)
+    monkeypatch.setattr(provenance, "read_records", lambda r, u: pending if u.stage == "retarget" else read_records(r, u))
+    items = StoreItems(root, [clip])
+    assert not items.kept(clip, EMB).any() and items.held_back_unreviewed == int(free.sum()) == len(pairs)

@@ -16,8 +16,9 @@ CLIP = ClipPlan("c", n_frames=20, height=4, width=4, intrinsics={"fx": 1}, sourc
                 has_object=True, has_gt=False)
 
 
-def config(frames_per_chunk: int = 8, window: int = 3) -> WalkConfig:
-    cfg = CurateConfig(out="x", frames_per_chunk=frames_per_chunk, restore_background={"window": window})
+def config(frames_per_chunk: int = 8, window: int = 3, clip_sources: int = 8) -> WalkConfig:
+    cfg = CurateConfig(out="x", frames_per_chunk=frames_per_chunk,
+                       restore_background={"window": window, "clip_sources": clip_sources})
     return WalkConfig.from_json(cfg.model_dump_json())
 
 
@@ -75,13 +76,18 @@ def test_estimated_hands_are_one_node_per_clip_that_registration_reads():
 
 
 def test_walk_streams_chunks_in_dependency_order():
-    nodes = clip_nodes(CLIP, ["hand"], config())
-    order = [(n.unit.stage, n.chunk) for n in _order(nodes)]
-    pos = {nid: i for i, nid in enumerate(order)}
-    for n in nodes:
-        for d in n.deps:
-            assert pos[(d.unit.stage, d.chunk)] < pos[(n.unit.stage, n.chunk)]
-    # streaming: chunk 0 is restored before chunk 2 is even ingested (it needs chunks 0-1 only)
+    for sources in (0, 8):
+        nodes = clip_nodes(CLIP, ["hand"], config(clip_sources=sources))
+        order = [(n.unit.stage, n.chunk) for n in _order(nodes)]
+        pos = {nid: i for i, nid in enumerate(order)}
+        for n in nodes:
+            for d in n.deps:
+                assert pos[(d.unit.stage, d.chunk)] < pos[(n.unit.stage, n.chunk)]
+    # streaming: chunk 0 is restored before chunk 2 is even ingested (it needs chunks 0-1 only), unless it
+    # takes what its window never saw from the rest of the clip (frames 14-19, more than twice the window away)
+    assert pos[("restore_background", 0)] > pos[("segment", 2)]
+    nodes = clip_nodes(CLIP, ["hand"], config(clip_sources=0))
+    pos = {nid: i for i, nid in enumerate((n.unit.stage, n.chunk) for n in _order(nodes))}
     assert pos[("restore_background", 0)] < pos[("ingest", 2)]
 
 

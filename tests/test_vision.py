@@ -332,6 +332,58 @@ def test_restore_background_without_other_frames_inpaints():
         assert r.method.endswith("telea" if method == "telea" else "xphoto-fsr")
 
 
+def test_a_still_hand_is_restored_from_the_rest_of_the_clip():
+    """A hand that holds still for the whole window is never seen behind there; frames from
+    later in the clip, where it has moved, fill what the window never saw, and only that, where
+    two of them agree."""
+    h, w, pad = 180, 320, 40
+    big = _background(h, w, 3, pad=pad)
+    frames, bgs, arms = [], [], []
+    for i, (ox, x) in enumerate([(k, 150) for k in range(6)] + [(9, 40), (12, 260)]):  # frames 0-5 still, 40 and 60: moved
+        bg = big[pad : pad + h, pad + ox : pad + ox + w].copy()
+        f = bg.copy()
+        _, ag = _draw_hand(f, _hand_keypoints(x, 125, 38, 0.1), 38)
+        frames.append(f), bgs.append(bg), arms.append(ag)
+    frames, bgs, arms = np.stack(frames), np.stack(bgs), np.stack(arms)
+    times = np.array([0, 1, 2, 3, 4, 5, 40, 60])
+    cfg = RestoreConfig(window=3)
+    hole = _dilate(arms[2], cfg.dilate_px)
+    window = restore_background(frames[:6], arms[:6], np.array([2]), cfg)
+    clip = restore_background(frames, arms, np.array([2]), cfg, times=times)
+    assert window.filled_from_video[0] < 0.5 < 0.95 < clip.filled_from_video[0]
+    assert _psnr(clip.background[0], bgs[2], hole) > _psnr(window.background[0], bgs[2], hole) + 3
+    assert clip.method == "classical:propagate-homography+clip+inpaint-telea"
+    # the window's own pixels are not revoted: only the ones it inpainted change
+    changed = (clip.background[0] != window.background[0]).any(-1)
+    assert not (changed & ~hole).any()
+    assert 0 < changed.sum() <= round((1 - window.filled_from_video[0]) * hole.sum())
+    # the rest of the clip is not a source when it is not wanted
+    none = restore_background(frames, arms, np.array([2]), RestoreConfig(window=3, clip_sources=0), times=times)
+    np.testing.assert_array_equal(none.background, window.background)
+    # one later frame alone is not trusted (the scene may have changed): inpainted as before
+    one = restore_background(frames[:7], arms[:7], np.array([2]), cfg, times=times[:7])
+    np.testing.assert_array_equal(one.background, window.background)
+    with pytest.raises(ValueError, match="increasing frame numbers"):
+        restore_background(frames, arms, np.array([2]), cfg, times=times[::-1])
+
+
+def test_a_later_frame_takes_the_brightness_the_target_has_around_the_hole():
+    """The hand's shadow around a still hand, or an exposure change: a later frame's pixels are
+    shifted by the smooth difference measured where both frames know the scene."""
+    from handedit.vision.restore_background import _local_offset
+
+    rng = np.random.default_rng(0)
+    source = rng.uniform(60, 200, (80, 100, 3)).astype(np.float32)  # texture
+    yy, xx = np.mgrid[0:80, 0:100]
+    shade = (-40 + 0.3 * xx)[..., None].astype(np.float32)  # a soft shadow, darker to the left
+    target = source + shade
+    hole = (np.abs(yy - 40) < 15) & (np.abs(xx - 50) < 15)
+    at = np.nonzero(hole)
+    off = _local_offset(target, source, ~hole, at)
+    assert np.abs(off - shade[at]).mean() < 4.0  # the texture does not leak into the offset
+    assert np.abs(_local_offset(source, source, ~hole, at)).max() < 1e-3
+
+
 def test_restore_background_rejects_misaligned_sources():
     """A source frame that alignment cannot explain must not be pasted (no ghosting)."""
     frames, bgs, arms = _panning_scene(n=3)

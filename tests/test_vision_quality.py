@@ -93,17 +93,17 @@ def test_ghosting_and_residue_checks_fire():
     feats = _Features(frames, holes, 640)
     ok = np.ones(3, bool)
     good = frames[1].copy()
-    assert _checks(good, holes[1], 1, frames, holes, ok, feats, cfg) == Reason.OK
+    assert _checks(good, holes[1], 1, [0, 2], frames, holes, ok, feats, cfg) == Reason.OK
     ghost = good.copy()
     ghost[holes[1]] = 255 - ghost[holes[1]]
-    assert _checks(ghost, holes[1], 1, frames, holes, ok, feats, cfg) == Reason.GHOSTING
+    assert _checks(ghost, holes[1], 1, [0, 2], frames, holes, ok, feats, cfg) == Reason.GHOSTING
     hand = good.copy()
     hand[holes[1]] = (200, 140, 110)  # skin colour
-    assert _checks(hand, holes[1], 1, frames, holes, ok, feats, cfg) == Reason.RESIDUE
+    assert _checks(hand, holes[1], 1, [0, 2], frames, holes, ok, feats, cfg) == Reason.RESIDUE
     # by default composite judges residue, on the restored pixels no robot covers; here the
     # neighbours saw the background behind the hand, so the frame still fails, as GHOSTING
     deferred = RestoreConfig(align="identity")
-    assert _checks(hand, holes[1], 1, frames, holes, ok, feats, deferred) == Reason.GHOSTING
+    assert _checks(hand, holes[1], 1, [0, 2], frames, holes, ok, feats, deferred) == Reason.GHOSTING
 
 
 def test_residue_is_judged_where_the_robot_leaves_the_hole_visible():

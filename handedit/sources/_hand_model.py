@@ -304,6 +304,18 @@ def forearm_mesh(geom: HandGeom) -> trimesh.Trimesh:
     return hull_of_ellipsoids(centres, radii)
 
 
+def sleeve_mesh(geom: HandGeom, start: float, ease: float = 1.15) -> trimesh.Trimesh:
+    """A sleeve over the forearm (its frame): from ``start`` metres past the wrist to the
+    elbow, ``ease`` times the forearm's radii (cloth stands off the skin)."""
+    (w0, t0), (w1, t1) = geom.forearm_wrist_radii, geom.forearm_elbow_radii
+    L = geom.forearm_length
+    f = min(max(start / L, 0.0), 0.5)
+    ws, ts = w0 + f * (w1 - w0), t0 + f * (t1 - t0)
+    centres = np.array([[0, 0, start], [0, 0, 0.55 * L], [0, 0, L]], float)
+    radii = ease * np.array([[ws, ts, ts], [0.5 * (w0 + w1) * 1.05, 0.5 * (t0 + t1) * 1.08, t1], [w1, t1, t1]])
+    return hull_of_ellipsoids(centres, radii)
+
+
 def skin_colors(mesh: trimesh.Trimesh, base: np.ndarray, dorsal: np.ndarray, rng: np.random.Generator,
                 palmar_tint: np.ndarray = np.array([1.06, 0.98, 0.95])) -> np.ndarray:
     """Per-vertex RGBA: lighter, pinker palmar skin, darker dorsal skin, low-frequency blotches."""

@@ -37,6 +37,9 @@ if TYPE_CHECKING:
     import pyrender
 
 GENERATOR_VERSION = "synthetic-v1"
+# cloth colours a sleeve is drawn from (sRGB): dark, bright, and two close to skin
+SLEEVE_COLOURS = ((0.12, 0.13, 0.16), (0.22, 0.42, 0.25), (0.85, 0.45, 0.15), (0.30, 0.36, 0.55),
+                  (0.80, 0.66, 0.52), (0.70, 0.52, 0.42))
 GROUND_TRUTH: tuple[str, ...] = ("hand_mask", "handarm_mask", "background")
 
 # Motion script, as fractions of the clip (u = t / (n_frames - 1)).
@@ -63,6 +66,9 @@ class SyntheticSpec(pydantic.BaseModel):
     fps: float = 30.0
     still: bool = pydantic.Field(False, description="the hand holds its grasp (the script's moment STILL_AT) for the whole "
                                  "clip while the head camera keeps swaying: restoration never sees behind it")
+    sleeve: bool = pydantic.Field(False, description="a cloth sleeve over the forearm from a few cm past the wrist (colours "
+                                  "in SLEEVE_COLOURS, some close to skin, with a woven texture), and the elbow tracked in 3-D as "
+                                  "EgoDex tracks it: the hand-arm ground truth is the arm with its sleeve")
 
     @property
     def id(self) -> str:
@@ -189,6 +195,8 @@ class ClipPlan:
     light_phase: float
     table_seed: int
     still: bool = False  # SyntheticSpec.still
+    sleeve_rgb: np.ndarray | None = None  # (3,) sRGB cloth colour (SyntheticSpec.sleeve), else no sleeve
+    sleeve_start: float = 0.0  # metres past the wrist where the sleeve begins
 
 
 def _hand_world_rot(yaw: float, roll: float, pitch: float) -> np.ndarray:
@@ -330,8 +338,18 @@ def make_plan(spec: SyntheticSpec) -> ClipPlan:
         key_dir=key_dir / np.linalg.norm(key_dir), key_rgb=np.array([1.0, rng.uniform(0.88, 1.0), rng.uniform(0.75, 0.95)]),
         key_intensity=float(rng.uniform(1.5, 2.3)), lamp_pos=lamp, lamp_intensity=float(rng.uniform(0.8, 1.6)),
         ambient=float(rng.uniform(0.15, 0.28)), light_phase=float(rng.uniform(0, 2 * np.pi)),
-        table_seed=int(rng.integers(2**31)), still=spec.still,
+        table_seed=int(rng.integers(2**31)), still=spec.still, **_sleeve(spec),
     )
+
+
+def _sleeve(spec: SyntheticSpec) -> dict:
+    """The sleeve's colour and start, from a stream of their own (a clip without a sleeve draws
+    exactly what it drew before sleeves existed)."""
+    if not spec.sleeve:
+        return {}
+    rng = np.random.default_rng([spec.seed, 5])
+    rgb = np.asarray(SLEEVE_COLOURS[int(rng.integers(len(SLEEVE_COLOURS)))]) * rng.uniform(0.9, 1.1, 3)
+    return {"sleeve_rgb": np.clip(rgb, 0, 1), "sleeve_start": float(rng.uniform(0.025, 0.06))}
 
 
 # ----------------------------------------------------------------------------- per-frame state
@@ -404,6 +422,13 @@ def frame_state(plan: ClipPlan, t: int, n_frames: int) -> FrameState:
                       plan.key_intensity * flicker, lamp, plan.lamp_intensity * (2.0 - flicker))
 
 
+def arm_joints(plan: ClipPlan, state: FrameState) -> np.ndarray:
+    """(3,3) world elbow, shoulder, clavicle (keypoints.ARM_JOINTS): the elbow at the forearm's
+    end; the others are not modelled (a source marks them untracked)."""
+    elbow = state.world_from_forearm @ np.array([0.0, 0.0, plan.geom.forearm_length, 1.0])
+    return np.stack([elbow[:3], np.zeros(3), np.zeros(3)])
+
+
 def frame_keypoints(plan: ClipPlan, state: FrameState) -> np.ndarray:
     """21 joints in the world frame (metres)."""
     kp, _ = hm.hand_keypoints(plan.geom, state.hand_pose)
@@ -467,7 +492,7 @@ class _Scene:
     palm: "pyrender.Node"
     segments: list
     nails: list
-    forearm: "pyrender.Node"
+    forearm: list  # the forearm and its sleeve, posed together
     obj: "pyrender.Node"
     hand_meshes: list
     seg_map: dict
@@ -533,16 +558,35 @@ def _build_scene(plan: ClipPlan) -> _Scene:
     arm_mesh = _skin_mesh(pyrender, hm.forearm_mesh(g), skin * 0.95, np.array([0, 1.0, 0]), rng,
                           np.ones(3))
     forearm = scene.add(arm_mesh)
+    arm_meshes, arm_nodes = [arm_mesh], [forearm]
+    if plan.sleeve_rgb is not None:
+        arm_meshes.append(_cloth_mesh(pyrender, hm.sleeve_mesh(g, plan.sleeve_start), _linear(plan.sleeve_rgb), plan.table_seed))
+        arm_nodes.append(scene.add(arm_meshes[-1]))
 
     i = plan.intr
     cam = scene.add(pyrender.IntrinsicsCamera(i.fx, i.fy, i.cx, i.cy, znear=0.01, zfar=10.0))
     key = scene.add(pyrender.DirectionalLight(color=plan.key_rgb, intensity=plan.key_intensity))
     lamp = scene.add(pyrender.PointLight(color=np.ones(3), intensity=plan.lamp_intensity))
     seg_map = {n: _SEG_HAND for n in [palm, *segments, *nails]}
-    seg_map[forearm] = _SEG_ARM
+    seg_map.update({n: _SEG_ARM for n in arm_nodes})
     seg_map[obj] = _SEG_OBJ
-    return _Scene(scene, cam, key, lamp, palm, segments, nails, forearm, obj,
-                  [palm_mesh, *seg_meshes, *nail_meshes, arm_mesh], seg_map, table)
+    return _Scene(scene, cam, key, lamp, palm, segments, nails, arm_nodes, obj,
+                  [palm_mesh, *seg_meshes, *nail_meshes, *arm_meshes], seg_map, table)
+
+
+def _cloth_mesh(pyrender, mesh: trimesh.Trimesh, rgb: np.ndarray, seed: int):
+    """Matte cloth with per-vertex colour: a woven stripe across the sleeve and fold shading."""
+    rng = np.random.default_rng([seed, 7])
+    v = mesh.vertices
+    weave = 0.07 * np.sin(v[:, 2] * rng.uniform(250, 400)) + 0.05 * np.sin(np.arctan2(v[:, 1], v[:, 0]) * 9)
+    fold = 0.10 * np.sin(v[:, 2] * rng.uniform(25, 45) + rng.uniform(0, 2 * np.pi))
+    colours = np.clip(rgb[None] * (1.0 + weave + fold)[:, None], 0, 1)
+    rgba = np.concatenate([colours, np.ones((len(v), 1))], axis=1).astype(np.float32)
+    mat = pyrender.MetallicRoughnessMaterial(baseColorFactor=(1.0, 1.0, 1.0, 1.0), metallicFactor=0.0,
+                                             roughnessFactor=0.95)
+    prim = pyrender.Primitive(positions=np.asarray(v, np.float32), normals=np.asarray(mesh.vertex_normals, np.float32),
+                              indices=np.asarray(mesh.faces), color_0=rgba, material=mat)
+    return pyrender.Mesh([prim])
 
 
 def _pose_scene(s: _Scene, plan: ClipPlan, st: FrameState) -> None:
@@ -553,7 +597,8 @@ def _pose_scene(s: _Scene, plan: ClipPlan, st: FrameState) -> None:
         s.scene.set_pose(node, T @ F)
     for k, node in enumerate(s.nails):
         s.scene.set_pose(node, T @ frames[3 * k + 2])
-    s.scene.set_pose(s.forearm, st.world_from_forearm)
+    for node in s.forearm:
+        s.scene.set_pose(node, st.world_from_forearm)
     s.scene.set_pose(s.obj, st.world_from_object)
     s.scene.set_pose(s.camera, st.world_from_camera @ CV_TO_GL)
     s.scene.set_pose(s.key, st.key_pose)
@@ -662,8 +707,8 @@ class SyntheticSource:
 
     @property
     def fingerprint(self) -> str:
-        # a moving clip's fingerprint leaves ``still`` out: the clips made before it existed keep theirs
-        dump = self.spec.model_dump_json(exclude=None if self.spec.still else {"still"})
+        # fields at their defaults that came later are left out: the clips made before they existed keep theirs
+        dump = self.spec.model_dump_json(exclude={k for k in ("still", "sleeve") if not getattr(self.spec, k)} or None)
         return hashlib.sha256((dump + GENERATOR_VERSION).encode()).hexdigest()
 
     def info(self) -> ClipInfo:
@@ -672,7 +717,7 @@ class SyntheticSource:
             clip_id=s.clip_id, n_frames=s.n_frames, height=s.height, width=s.width, fps=s.fps,
             intrinsics=self.plan.intr, has_keypoints=True, has_object=True, fingerprint=self.fingerprint,
             meta={"dataset": "synthetic", "generator": GENERATOR_VERSION, "seed": s.seed, "object": self.plan.obj.kind},
-            ground_truth=GROUND_TRUTH, hands=("right",), keypoints_exact=True,
+            ground_truth=GROUND_TRUTH, hands=("right",), keypoints_exact=True, has_arm=s.sleeve,
             world={"up": [0.0, 0.0, 1.0], "support_plane": [0.0, 0.0, 1.0, 0.0], "origin": "the table top (z = 0)"},
         )
 
@@ -695,6 +740,7 @@ class SyntheticSource:
         T_co = np.zeros((n, 4, 4))
         kps = np.zeros((n, 1, 21, 3), np.float32)  # one hand: the right
         valid = np.zeros((n, 1, 21), bool)
+        arm_kps, arm_valid = np.zeros((n, 1, 3, 3), np.float32), np.zeros((n, 1, 3), bool)
         if n:
             r, s = _renderer(W, H), _scene_for(self.fingerprint, plan)
             for i, t in enumerate(range(start, stop)):
@@ -709,9 +755,12 @@ class SyntheticSource:
                 kp = frame_keypoints(plan, st) @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
                 valid[i, 0] = kp[:, 2] > 0.01
                 kps[i, 0] = np.where(valid[i, 0][:, None], kp, 0.0)
+                arm_kps[i, 0] = arm_joints(plan, st) @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+                arm_valid[i, 0, 0] = True  # the elbow, even behind the camera (EgoDex's too)
         return ClipChunk(
             start=start, frames=out["frames"], world_from_camera=T_wc, keypoints=kps, keypoints_valid=valid,
             frame_ok=np.ones(n, bool), object_mask=out["obj"], object_pose=T_co,
             object_depth=object_depth(*self.object_mesh(), T_co, plan.intr),
             gt={"hand_mask": out["hand"], "handarm_mask": out["handarm"], "background": out["background"]},
+            **({"arm_keypoints": np.where(arm_valid[..., None], arm_kps, 0.0), "arm_valid": arm_valid} if self.spec.sleeve else {}),
         )

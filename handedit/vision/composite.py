@@ -33,12 +33,13 @@ from handedit.keypoints import N_JOINTS, PARENT, WRIST
 from handedit.reasons import STATUS_DTYPE, Reason, per_frame
 from handedit.metrics.similarity import bbox
 from handedit.vision.masks import disk, grow
+from handedit.vision.occluder import OccluderConfig
 from handedit.vision.restore_background import restored_residue
 from handedit.vision.skin import colour_loglik
 
 
 class CompositeConfig(pydantic.BaseModel):
-    VERSION: ClassVar[int] = 4  # 2: one blend (cv2.blendLinear, round-to-nearest), object depth only in the robot's window; 3: off-arm check; 4: residue
+    VERSION: ClassVar[int] = 5  # 3: off-arm check; 4: residue; 5: image_occluder (what hid the fingers, opt-in)
     model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
 
     method: Literal["classical"] = "classical"
@@ -55,6 +56,11 @@ class CompositeConfig(pydantic.BaseModel):
     max_off_arm: float = pydantic.Field(0.35, ge=0, le=1, description="hand-arm: share of a robot's pixels outside the "
                                         "human arm's corridor (handedit.vision.arm) above which -> OFF_ARM")
     arm_corridor_frac: float = pydantic.Field(0.05, ge=0, description="the corridor grows by this share of the image width")
+    image_occluder: OccluderConfig | None = pydantic.Field(None, description=(
+        "a source without an object mesh or mask: what hid the human fingers (handedit.vision.occluder) is drawn in "
+        "front of the robot. Off by default: on the synthetic grasps (true masks) it finds the held object, but on the "
+        "EgoDex clips most of what it finds is the hand's own fingers the mask left out, and their pixels in front of "
+        "the robot reject 16 more frame-sides of 128 (HUMAN_VISIBLE)"))
 
 
 @dataclass

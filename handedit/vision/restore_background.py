@@ -7,8 +7,11 @@ by a homography fitted to ORB features on their visible background (a plane-indu
 model: exact for a rotating camera or a distant/planar scene, close enough for slow
 egocentric motion), checked by their photometric error on the shared background, gain
 corrected, and their unmasked pixels vote (per-pixel median when >= 3 frames saw the
-pixel, else the temporally nearest one). Only what no frame saw is inpainted
-(OpenCV Telea by default, or the contrib ``xphoto`` FSR / shift-map inpainters).
+pixel, else the temporally nearest one). What no frame of the window saw is then taken from
+frames of the rest of the clip (``clip_sources``, given by the caller): a hand that holds
+still for a second is never seen behind within the window, but usually is later. Only what
+no frame saw is inpainted (OpenCV Telea by default, or the contrib ``xphoto`` FSR /
+shift-map inpainters).
 
 This is the classical stand-in for ProPainter (the paper's default); ``method="onnx"``
 with ``model_path`` runs a learned video inpainter instead (``handedit.models.inpainter``
@@ -41,7 +44,7 @@ from handedit.vision.skin import prior_rule, to_ycrcb
 
 
 class RestoreConfig(pydantic.BaseModel):
-    VERSION: ClassVar[int] = 6  # 5: alignment checked every 4th pixel; 6: residue judged after compositing (the hole stored)
+    VERSION: ClassVar[int] = 7  # 6: residue judged after compositing (the hole stored); 7: the rest of the clip fills what the window never saw
     model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
 
     method: Literal["classical", "onnx"] = "classical"
@@ -50,6 +53,16 @@ class RestoreConfig(pydantic.BaseModel):
     work_max_side: int = pydantic.Field(640, ge=32)  # model input size when the model's is dynamic
     window: int = pydantic.Field(12, ge=0)  # frames each side of a target the caller should provide
     max_sources: int = pydantic.Field(8, ge=0)  # frames of the window used per target (spread evenly)
+    clip_sources: int = pydantic.Field(8, ge=0, description=(
+        "frames from the rest of the clip (spread evenly over it) the caller should provide: they fill only the "
+        "pixels no frame of the window saw (a hand that holds still), nearest in time first"))
+    clip_min_unseen: float = pydantic.Field(0.05, ge=0, le=1, description=(
+        "the rest of the clip is searched only when at least this share of the hole was never seen in the window "
+        "(thin slivers inpaint well, and each later frame costs an alignment per target)"))
+    clip_agree: float = pydantic.Field(12.0, gt=0, description=(
+        "a pixel from the rest of the clip needs two of its frames within this mean |RGB difference| of the value "
+        "taken (the scene changes over a clip: an arm passing by, a moved object); their fill is then brought to the "
+        "local brightness of its surroundings (the hands' shadows, exposure drift)"))
     dilate_px: int = pydantic.Field(6, ge=0)  # mask margin: segmentation edges and soft shadows
     align: Literal["homography", "identity"] = "homography"
     homography_fit: Literal["ransac", "usac_fast"] = pydantic.Field("ransac", description=(
@@ -255,13 +268,19 @@ def _fit_homography(feats: _Features, j: int, t: int, cfg: RestoreConfig) -> np.
     return Hm
 
 
-def _sources(t: int, m: int, cfg: RestoreConfig) -> list[int]:
-    """Frames of the window around t, spread evenly, nearest first."""
-    cand = [j for j in range(max(0, t - cfg.window), min(m, t + cfg.window + 1)) if j != t]
+def _sources(t: int, times: np.ndarray, cfg: RestoreConfig) -> tuple[list[int], list[int]]:
+    """(window, rest): indices of the frames within ``cfg.window`` of t's time, spread evenly,
+    and of the frames given beyond twice that (the rest of the clip: the frames just past the
+    window saw what the window saw, a hand that held still, and the same mask errors); each
+    nearest in time first."""
+    near = np.abs(times - times[t]) <= cfg.window
+    cand = [j for j in np.flatnonzero(near).tolist() if j != t]
     if len(cand) > cfg.max_sources:
         pick = np.linspace(0, len(cand) - 1, cfg.max_sources).round().astype(int)
         cand = [cand[k] for k in sorted(set(pick))]
-    return sorted(cand, key=lambda j: (abs(j - t), j))
+    order = lambda j: (abs(int(times[j]) - int(times[t])), int(times[j]))  # noqa: E731
+    far = np.abs(times - times[t]) > 2 * cfg.window
+    return sorted(cand, key=order), sorted(np.flatnonzero(far).tolist(), key=order)
 
 
 @lru_cache(maxsize=None)
@@ -364,27 +383,28 @@ def visible_residue(background: np.ndarray, hole: np.ndarray, covered: np.ndarra
     return np.array([bool(h.any()) and restored_residue(b, h, thr, ~c) for b, h, c in zip(background, hole, covered)], bool)
 
 
-def _checks(img, hole, t, frames, holes, ok, feats, cfg: RestoreConfig) -> Reason:
+def _checks(img, hole, t, neighbours, frames, holes, ok, feats, cfg: RestoreConfig) -> Reason:
     """The restored frame's automatic QC: residue first (unless composite judges it), then ghosting."""
     if not hole.any():
         return Reason.OK
     if not cfg.residue_after_composite and restored_residue(img, hole, cfg.residue_threshold):
         return Reason.RESIDUE
-    ghost = _ghosting(img, hole, t, frames, holes, ok, feats, cfg)
+    ghost = _ghosting(img, hole, t, neighbours, frames, holes, ok, feats, cfg)
     if ghost is not None and ghost > cfg.ghost_threshold:
         return Reason.GHOSTING
     return Reason.OK
 
 
-def _ghosting(img: np.ndarray, hole: np.ndarray, t: int, frames: np.ndarray, holes: Sequence[np.ndarray], ok: np.ndarray,
-              feats: "_Features", cfg: RestoreConfig) -> float | None:
-    """Median |grey diff| of the restored hole against the best-agreeing adjacent frame."""
+def _ghosting(img: np.ndarray, hole: np.ndarray, t: int, neighbours: Sequence[int], frames: np.ndarray,
+              holes: Sequence[np.ndarray], ok: np.ndarray, feats: "_Features", cfg: RestoreConfig) -> float | None:
+    """Median |grey diff| of the restored hole against the best-agreeing adjacent frame (``neighbours``: indices of
+    the frames just before and after t)."""
     win = bbox(hole)  # only the hole's pixels are compared: warp into its box
     hole = hole[win]
     g = cv2.cvtColor(np.ascontiguousarray(img[win]), cv2.COLOR_RGB2GRAY)
     best = None
-    for j in (t - 1, t + 1):
-        if not (0 <= j < len(frames)) or not ok[j]:
+    for j in neighbours:
+        if not ok[j]:
             continue
         Hm = np.eye(3) if cfg.align == "identity" else _homography(feats, j, t, cfg)
         Hb = _into_box(np.eye(3) if Hm is None else Hm, win)
@@ -406,10 +426,17 @@ def restore_background(
     *,
     frame_ok: np.ndarray | None = None,
     feature_masks: np.ndarray | None = None,
+    times: np.ndarray | None = None,
+    arm_masks: np.ndarray | None = None,
 ) -> RestoreResult:
     """Background for ``frames[targets]`` with ``masks`` (hand/arm, bool) removed.
 
-    ``frames`` is the window: the targets plus up to ``cfg.window`` frames each side.
+    ``frames`` is the window: the targets plus up to ``cfg.window`` frames each side, and
+    optionally frames from the rest of the clip; ``times`` ((m,) int, default 0..m-1) are
+    their frame numbers in the clip, increasing. Frames within ``cfg.window`` of a target
+    vote for its hole; the others fill only what none of those saw, and never from their
+    ``arm_masks`` ((m,H,W) bool, default ``masks``): over a clip the arms move, and a sleeve
+    is not the background behind a hand.
     ``frame_ok`` (optional, (m,) bool) excludes undecodable frames as sources.
     ``feature_masks`` (optional, (m,H,W) bool, default ``masks``): what the alignment's
     features must avoid. The pipeline passes the hand masks for both scopes, so the hand-arm
@@ -422,6 +449,9 @@ def restore_background(
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8 or masks.shape != frames.shape[:3]:
         raise ValueError(f"restore_background: frames (m,H,W,3) uint8 and masks (m,H,W) bool, got {frames.shape}, {masks.shape}")
     m, H, W = frames.shape[:3]
+    times = np.arange(m) if times is None else np.asarray(times, dtype=np.int64).reshape(-1)
+    if len(times) != m or (m > 1 and np.any(np.diff(times) <= 0)):
+        raise ValueError(f"restore_background: times must be {m} increasing frame numbers, got {times.tolist()}")
     ok = np.ones(m, bool) if frame_ok is None else np.asarray(frame_ok, bool)
     holes = _holes(masks, cfg.dilate_px)  # (m,) (H,W) bool, read-only
     if feature_masks is None or feature_masks is masks:  # (the hand scope passes its own masks)
@@ -432,12 +462,10 @@ def restore_background(
             raise ValueError(f"restore_background: feature_masks must be {masks.shape} like masks, got {feature_masks.shape}")
         feature_holes = _holes(feature_masks, cfg.dilate_px)
     feats = _Features(frames, feature_holes, cfg.feature_max_side)
-    gray = [None] * m
+    index = {int(f): i for i, f in enumerate(times)}
 
-    def grey(i: int) -> np.ndarray:
-        if gray[i] is None:
-            gray[i] = cv2.cvtColor(frames[i], cv2.COLOR_RGB2GRAY)
-        return gray[i]
+    def neighbours(t: int) -> list[int]:
+        return [index[f] for f in (int(times[t]) - 1, int(times[t]) + 1) if f in index]
 
     n = len(targets)
     if cfg.method == "onnx":
@@ -446,18 +474,98 @@ def restore_background(
         out, tag = inpaint_onnx(frames, holes, targets, ok, cfg)
         status = np.full(n, Reason.OK, STATUS_DTYPE)
         for k, t in enumerate(targets):
-            status[k] = _checks(out[k], holes[t], int(t), frames, holes, ok, feats, cfg)
+            status[k] = _checks(out[k], holes[t], int(t), neighbours(int(t)), frames, holes, ok, feats, cfg)
         return RestoreResult(out, status, np.zeros(n, np.float32), tag, _target_holes(holes, targets))
     out = np.empty((n, H, W, 3), np.uint8)  # every target's frame is written whole
     status = np.full(n, Reason.OK, STATUS_DTYPE)
     filled_frac = np.zeros(n, np.float32)
-    full = (slice(0, H), slice(0, W))
+    propagate = _Propagation(frames, holes, ok, feats, cfg)
+    arm_holes: list = []  # dilated arm masks, made when the rest of the clip is first searched
+    from_clip = False  # whether the rest of the clip was given (the method says so)
     for k, t in enumerate(targets):
         img = out[k]  # restored in place
         img[...] = frames[t]
         hole = holes[t]
         if not hole.any():
             continue
+        window, rest = _sources(int(t), times, cfg) if ok[t] else ([], [])
+        filled = propagate(img, int(t), window, None)
+        from_clip |= bool(rest and cfg.clip_sources)
+        win = bbox(hole, 25)
+        hy, hx = np.nonzero(hole[win])
+        if rest and (~filled).mean() >= max(cfg.clip_min_unseen, 1e-9):  # what the window never saw, from the rest of the clip
+            if not arm_holes:
+                arm_holes[:] = holes if arm_masks is None else _holes(np.asarray(arm_masks, bool), cfg.dilate_px)
+            late = propagate(img, int(t), rest[:cfg.clip_sources], ~filled, cfg.clip_agree, via=int(targets[0]),
+                             occupied=arm_holes)
+            filled |= late
+        filled_frac[k] = float(filled.mean())
+        left = np.zeros((H, W), bool)
+        left[win][hy[~filled], hx[~filled]] = True
+        if left.any():
+            _inpaint(img, left, cfg)
+        status[k] = _checks(img, hole, int(t), neighbours(int(t)), frames, holes, ok, feats, cfg)
+    inp = {"telea": "telea", "ns": "ns", "fsr_fast": "xphoto-fsr", "shiftmap": "xphoto-shiftmap"}[cfg.inpaint]
+    align = "homography" if cfg.align == "homography" else "identity"
+    return RestoreResult(out, status, filled_frac, f"classical:propagate-{align}{'+clip' if from_clip else ''}+inpaint-{inp}",
+                         _target_holes(holes, targets))
+
+
+def _local_offset(target: np.ndarray, source: np.ndarray, both: np.ndarray, at: tuple[np.ndarray, np.ndarray],
+                  step: int = 4) -> np.ndarray:
+    """(P,3) target minus source at the pixels ``at`` (in the hole), as a smooth field: the
+    difference where both know the pixel, carried into the hole from its nearest edge (Telea on
+    a ``step`` times coarser grid). The hand's shadow around the hole and an exposure change
+    between the two moments are taken from the hole's own rim; the texture stays the source's."""
+    h, w = both.shape
+    size = (max(1, -(-w // step)), max(1, -(-h // step)))
+    m = cv2.resize(both.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    d = cv2.resize((target.astype(np.float32) - source) * both[..., None], size, interpolation=cv2.INTER_AREA)
+    known = m > 0.5
+    if not known.any():
+        return np.zeros((len(at[0]), 3), np.float32)
+    field = np.clip(d / np.maximum(m, 1e-6)[..., None] + 128.0, 0, 255).astype(np.uint8)
+    field = cv2.inpaint(field, (~known).view(np.uint8), 3, cv2.INPAINT_TELEA)
+    return cv2.resize(field, (w, h), interpolation=cv2.INTER_LINEAR)[at].astype(np.float32) - 128.0
+
+
+class _Propagation:
+    """Real background pixels for a target's hole from other frames, aligned, checked and
+    gain corrected; the per-pixel median of >= 3 views, else the nearest frame's."""
+
+    def __init__(self, frames: np.ndarray, holes: Sequence[np.ndarray], ok: np.ndarray, feats: _Features,
+                 cfg: RestoreConfig):
+        self.frames, self.holes, self.ok, self.feats, self.cfg = frames, holes, ok, feats, cfg
+        self._grey: dict[int, np.ndarray] = {}
+
+    def homography(self, j: int, t: int, via: int | None) -> np.ndarray | None:
+        """j -> t, through ``via`` when both of its fits are trusted (the photometric check still
+        judges the result), else fitted directly."""
+        if via is not None and via not in (j, t):
+            a, b = _homography(self.feats, j, via, self.cfg), _homography(self.feats, via, t, self.cfg)
+            if a is not None and b is not None:
+                return b @ a
+        return _homography(self.feats, j, t, self.cfg)
+
+    def grey(self, i: int) -> np.ndarray:
+        if i not in self._grey:
+            self._grey[i] = cv2.cvtColor(self.frames[i], cv2.COLOR_RGB2GRAY)
+        return self._grey[i]
+
+    def __call__(self, img: np.ndarray, t: int, sources: Sequence[int], only: np.ndarray | None,
+                 agree: float | None = None, via: int | None = None, occupied: Sequence[np.ndarray] | None = None) -> np.ndarray:
+        """Write into ``img`` (frame t, restored in place) the hole pixels ``sources`` saw,
+        restricted to ``only`` ((P,) bool over the hole's pixels in ``bbox(hole, 25)`` order);
+        with ``agree`` (the rest of the clip), only pixels two sources saw within that mean |RGB
+        difference| of the value taken, each source first brought to the target's local
+        brightness: the difference on the pixels both know (around the hole, and what the
+        window filled), spread smoothly into the hole. ``via``: a frame near t the sources are
+        aligned to first (their homographies onto it are shared by every target of a chunk, one
+        fit each instead of one per target). ``occupied``: what each source may not give (default
+        its own hole). Returns (P,) bool: the pixels written."""
+        cfg, frames, H, W = self.cfg, self.frames, *self.frames.shape[1:3]
+        hole = self.holes[t]
+        full = (slice(0, H), slice(0, W))
         # the hole and its gain ring: the only pixels warped in colour (the alignment check
         # samples every align_check_step-th pixel of the frame, warped straight onto that
         # grid, in grey)
@@ -466,33 +574,44 @@ def restore_background(
         hy, hx = np.nonzero(hole[win])
         st = cfg.align_check_step
         keep = ~hole[::st, ::st]
-        target_grey = grey(int(t))[::st, ::st]
+        target_grey = self.grey(t)[::st, ::st]
+        known = ~hole[win]  # the target's own pixels, and what the window filled: where a later frame's offset is measured
+        if only is not None:
+            known = known.copy()
+            known[hy[~only], hx[~only]] = True
         cands, valids = [], []
-        for j in _sources(int(t), m, cfg) if ok[t] else []:
-            if not ok[j]:
+        for j in sources:
+            if not self.ok[j]:
                 continue
-            Hm = np.eye(3) if cfg.align == "identity" else _homography(feats, j, int(t), cfg)
+            Hm = np.eye(3) if cfg.align == "identity" else self.homography(j, t, via)
             if Hm is None:
                 Hm = np.eye(3)  # textureless or static: identity, if the photometric check agrees
-            visible = (~holes[j]).view(np.uint8)
+            visible = (~(self.holes if occupied is None else occupied)[j]).view(np.uint8)
             Hs = _into_box(Hm, full, st)
             shared = (cv2.warpPerspective(visible, Hs, _size(full, st), flags=cv2.INTER_NEAREST) > 0) & keep
             if cv2.countNonZero(shared.view(np.uint8)) < 25:
                 continue
-            gw = cv2.warpPerspective(grey(j), Hs, _size(full, st), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+            gw = cv2.warpPerspective(self.grey(j), Hs, _size(full, st), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
             if _median_u8(cv2.absdiff(gw, target_grey), shared) > cfg.max_align_error:
                 continue  # misaligned, lighting jump or moving scene: would ghost
             Hb = _into_box(Hm, win)
-            warped = cv2.warpPerspective(frames[j], Hb, _size(win), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
             seen = cv2.warpPerspective(visible, Hb, _size(win), flags=cv2.INTER_NEAREST) > 0
+            sv = seen[hy, hx] if only is None else seen[hy, hx] & only
+            if not sv.any():
+                continue  # sees none of the pixels still wanted
+            warped = cv2.warpPerspective(frames[j], Hb, _size(win), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
             vals = pixels(warped)[hy, hx].view(np.uint8).reshape(-1, 3).astype(np.float32)  # whole-pixel gather
+            gain = np.ones(3, np.float32)
             if cfg.gain_compensation:
                 near = (ring & seen).view(np.uint8)
                 if cv2.countNonZero(near) >= 50:  # masked means (cv2: no gathers of the ring's pixels)
                     gain = np.array(cv2.mean(np.ascontiguousarray(img[win]), near)[:3]) / np.maximum(cv2.mean(warped, near)[:3], 1.0)
-                    vals *= np.clip(gain, 0.8, 1.25).astype(np.float32)
+                    gain = np.clip(gain, 0.8, 1.25).astype(np.float32)
+                    vals *= gain
+            if agree is not None:
+                vals += _local_offset(img[win], warped.astype(np.float32) * gain, seen & known, (hy, hx))
             cands.append(vals)
-            valids.append(seen[hy, hx])
+            valids.append(sv)
         filled = np.zeros(len(hy), bool)
         if cands:
             V = np.stack(valids)  # (k,P)
@@ -504,17 +623,10 @@ def restore_background(
             many = cnt >= 3
             if many.any():
                 val[many] = _median_seen(C[:, many], V[:, many])
+            if agree is not None:
+                filled &= ((np.abs(C - val[None]).mean(-1) <= agree) & V).sum(0) >= 2
             pixels(img[win])[hy[filled], hx[filled]] = pixels(np.clip(np.round(val[filled]), 0, 255).astype(np.uint8))
-        filled_frac[k] = float(filled.mean())
-        rest = np.zeros((H, W), bool)
-        rest[win][hy[~filled], hx[~filled]] = True
-        if rest.any():
-            _inpaint(img, rest, cfg)
-        status[k] = _checks(img, hole, int(t), frames, holes, ok, feats, cfg)
-    inp = {"telea": "telea", "ns": "ns", "fsr_fast": "xphoto-fsr", "shiftmap": "xphoto-shiftmap"}[cfg.inpaint]
-    align = "homography" if cfg.align == "homography" else "identity"
-    return RestoreResult(out, status, filled_frac, f"classical:propagate-{align}+inpaint-{inp}",
-                         _target_holes(holes, targets))
+        return filled
 
 
 def _target_holes(holes: Sequence[np.ndarray], targets: np.ndarray) -> np.ndarray:
