@@ -1,6 +1,6 @@
-"""deploy/prefect.yaml on a real Prefect server: `prefect deploy`, a process worker,
-`prefect deployment run` of the release deployment, and the scheduled incremental release
-picking up a clip added to its source.
+"""deploy/prefect.yaml on a real Prefect server: `prefect deploy`, a process worker
+(`handedit worker`), `prefect deployment run` of the release deployment, the scheduled
+incremental release picking up a clip added to its source, and the worker stopping on SIGTERM.
 
 The server, the work pool, the worker and every flow run are real processes on
 127.0.0.1 (not the test harness); the project's deployments are used as written, with
@@ -130,7 +130,7 @@ def test_deploy_run_and_scheduled_incremental_release(tmp_path):
         server.run([sys.executable, "-m", "handedit.flows.cli", "curate", "--config", str(config), "--cluster",
                     str(cluster), "--no-progress"], timeout=600)
         server.run([*PREFECT, "--no-prompt", "deploy", "--all", "--prefect-file", str(project)], cwd=REPO)
-        server.spawn([*PREFECT, "worker", "start", "--pool", POOL, "--type", "process"], cwd=REPO)
+        worker = server.spawn([sys.executable, "-m", "handedit.flows.cli", "worker", "--pool", POOL], cwd=REPO)
 
         # 1. `prefect deployment run` of the release deployment
         out = server.run([*PREFECT, "deployment", "run", "release-from-config/release"], cwd=REPO)
@@ -163,5 +163,20 @@ def test_deploy_run_and_scheduled_incremental_release(tmp_path):
         assert changes["removed"] == [] and changes["changed"] == []
         m = read_release(loc, v)
         assert m["counts"]["shards_reused"] == m["counts"]["shards"] - 1  # only the new clip's shard was written
+
+        # 4. the worker stops on SIGTERM (systemctl stop, a pod's termination): it leaves, exit status 0
+        server.wait(lambda: not [r for r in server.runs("nightly") if r["state_type"] == "RUNNING"])
+        os.kill(worker.pid, signal.SIGTERM)
+        assert worker.wait(60) == 0
+        assert "handedit worker: stopped" in Path(server.log.name).read_text()
     finally:
         server.stop()
+
+
+def test_the_worker_names_an_unreachable_api(tmp_path):
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")} | {
+        "PREFECT_HOME": str(tmp_path), "PREFECT_API_URL": f"http://127.0.0.1:{_port()}/api"}
+    out = subprocess.run([sys.executable, "-m", "handedit.flows.cli", "worker", "--pool", POOL], env=env,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 1 and "Traceback" not in out.stderr
+    assert "does not answer" in out.stderr and "PREFECT_API_URL" in out.stderr
