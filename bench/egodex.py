@@ -18,7 +18,9 @@ pixel-weighted over the frames the hand is in view; the kept hand-arm frames wit
 25 % of a robot outside the human arm's corridor (the hand-arm mask plus the capsule, grown
 by 5 % of the image width); and the RESIDUE rejections per clip: restoration's (frames) and
 composite's, which judges residue where no robot covers it (frame-sides per embodiment).
-``--figure`` writes source | masks | restored background | pseudo-GT (two robots) for a few
+Restoration's share of each hole taken from real pixels (``filled_from_video``, weighted by
+the hole's area), per clip and scope, over all frames and the first 24 (where the shared
+clips' hands hold still). ``--figure`` writes source | masks | restored background | pseudo-GT (two robots) for a few
 frames, one sheet per embodiment (``NAME-<embodiment>.png`` when there are several), made
 from the run (the EgoDex licence forbids committing it).
 """
@@ -85,7 +87,8 @@ def coverage(root, clip: str, emb: str) -> tuple[float, float]:
 
 def arm_report(root) -> dict:
     """Forearm coverage per clip x side, off-arm kept frames per clip x hand-arm embodiment,
-    RESIDUE rejections per clip (see the module doc)."""
+    RESIDUE rejections per clip, and the share of each restored hole taken from real pixels
+    (see the module doc)."""
     import numpy as np
 
     from handedit.camera import Intrinsics
@@ -95,8 +98,15 @@ def arm_report(root) -> dict:
     from handedit.storage.layout import clip_path
     from handedit.vision.arm import coverage, forearm_capsule, limbs, off_arm_shares
 
-    out = {"coverage": {}, "off_arm": {}, "residue": {}, "residue_composite": {}}
+    out = {"coverage": {}, "off_arm": {}, "residue": {}, "residue_composite": {}, "from_video": {}}
     for c in sorted(root["clips"].group_keys()):
+        for scope in ("hand", "hand_arm"):  # how much of each hole real pixels restored (the rest is inpainted)
+            rb = Unit("restore_background", c, scope=scope)
+            if rb.path in root and "hole" in root[rb.path]:
+                hole = root[rb.path]["hole"][:]
+                area = hole.reshape(len(hole), -1).sum(1).astype(float)
+                share = root[rb.path]["filled_from_video"][:] * area
+                out["from_video"][(c, scope)] = (share.sum() / max(area.sum(), 1.0), share[:24].sum() / max(area[:24].sum(), 1.0))
         ing, reg, seg = (root[Unit(s, c).path] for s in ("ingest", "registration", "segment"))
         if "arm_keypoints" not in reg:
             continue
@@ -139,6 +149,9 @@ def print_arm_report(rep: dict) -> None:
     print("\nkept hand-arm frame-sides with > 25 % of the robot outside the arm corridor:")
     for (c, e), (bad, n) in rep["off_arm"].items():
         print(f"  {c:<34} {e:<14} {bad:>4} of {n}")
+    print("\nrestored from real pixels (filled_from_video, weighted by hole area), per clip and scope: all frames / the first 24")
+    for (c, scope), (share, first) in rep["from_video"].items():
+        print(f"  {c:<34} {scope:<8} {share:6.3f} {first:6.3f}")
     print("\nRESIDUE rejections (restore_background, both scopes), per clip:")
     for c, n in rep["residue"].items():
         print(f"  {c:<34} {n:>4}")
