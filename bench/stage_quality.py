@@ -34,7 +34,7 @@ from handedit.camera import project  # noqa: E402
 from handedit.sources.synthetic import make_clip_specs  # noqa: E402
 from handedit.vision import quality as q  # noqa: E402
 from handedit.vision.arm import limbs  # noqa: E402
-from handedit.vision.occluder import OccluderConfig, hidden_fingers  # noqa: E402
+from handedit.vision.occluder import finger_footprint, hidden_fingers  # noqa: E402
 from handedit.vision.composite import composite  # noqa: E402
 from handedit.vision.harmonize import harmonize  # noqa: E402
 from handedit.vision.restore_background import restore_background, visible_residue  # noqa: E402
@@ -91,10 +91,7 @@ def measure_clip(spec, track_arm: bool = True) -> dict:
     # the occluder a source without an object mesh gets (composite.image_occluder), the mesh withheld:
     # from the keypoints and the predicted hand masks, against the object's true mask
     occ = hidden_fingers(c.keypoints, c.keypoints_valid, seg.hand_mask, info.intrinsics, frames=c.frames)
-    dot = np.zeros_like(seg.hand_mask)
-    dot[..., 0, 0] = True
-    feet = hidden_fingers(c.keypoints, c.keypoints_valid, dot, info.intrinsics, OccluderConfig(mask_slack=0, min_share=0))
-    truth = c.object_mask & feet & ~gh
+    truth = c.object_mask & finger_footprint(c.keypoints, c.keypoints_valid, info.intrinsics, gh.shape[1:]) & ~gh
     out["occluder_px"] = [int(occ.sum())]
     out["occluder_on_object"] = [int((occ & c.object_mask).sum())]
     out["occluder_found"], out["occluder_truth"] = [int((occ & truth).sum())], [int(truth.sum())]

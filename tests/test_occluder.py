@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from handedit.sources.synthetic import make_clip_specs
-from handedit.vision.occluder import OccluderConfig, hidden_fingers
+from handedit.vision.occluder import finger_footprint, hidden_fingers
 
 
 @pytest.fixture(scope="module")
@@ -26,15 +26,14 @@ def test_the_object_in_front_of_the_fingers_is_found_without_its_mesh(grasp):
     assert (occ & c.object_mask).sum() / occ.sum() > 0.95  # what it finds is the object
     assert not (occ & c.gt["hand_mask"]).any()
     # the object's pixels over the fingers' footprints (no slack), beside the hand: most are found
-    feet = hidden_fingers(c.keypoints, c.keypoints_valid, _dot(c), info.intrinsics, OccluderConfig(mask_slack=0, min_share=0))
-    truth = c.object_mask & feet & ~c.gt["hand_mask"]
+    truth = c.object_mask & _feet(info, c) & ~c.gt["hand_mask"]
     assert (occ & truth).sum() / truth.sum() > 0.6
 
 
 def test_a_visible_hand_hides_nothing_and_a_shifted_mask_is_not_an_occluder(grasp):
     info, c = grasp
     # the mask the bones would draw: every finger visible, nothing in front
-    feet = hidden_fingers(c.keypoints, c.keypoints_valid, _dot(c), info.intrinsics, OccluderConfig(mask_slack=0, min_share=0))
+    feet = _feet(info, c)
     assert not hidden_fingers(c.keypoints, c.keypoints_valid, (feet | c.gt["hand_mask"])[:, None], info.intrinsics).any()
     # a mask a couple of pixels off the bones (registration) stays within the slack
     shifted = np.roll(feet | c.gt["hand_mask"], 2, axis=2)[:, None]
@@ -46,23 +45,20 @@ def test_a_visible_hand_hides_nothing_and_a_shifted_mask_is_not_an_occluder(gras
     assert not hidden_fingers(c.keypoints, invalid, c.gt["hand_mask"][:, None], info.intrinsics).any()
 
 
-def _dot(c) -> np.ndarray:
-    """A mask of one pixel per hand: every finger bone's footprint counts as hidden (with no slack)."""
-    dot = np.zeros_like(c.gt["hand_mask"][:, None])
-    dot[..., 0, 0] = True
-    return dot
-
-
 def test_a_finger_the_mask_missed_is_not_an_occluder(grasp):
     """With the frames, a hidden pixel coloured like the hand (a finger the mask left out) is not
     an occluder; the object, whose colour is the scene's, still is."""
     info, c = grasp
     hand = c.gt["hand_mask"][:, None]
-    feet = hidden_fingers(c.keypoints, c.keypoints_valid, _dot(c), info.intrinsics, OccluderConfig(mask_slack=0, min_share=0))
-    missed = hand & ~feet[:, None]  # the mask loses every finger's visible part
+    missed = hand & ~_feet(info, c)[:, None]  # the mask loses every finger's visible part
     bare = hidden_fingers(c.keypoints, c.keypoints_valid, missed, info.intrinsics)
     seen = hidden_fingers(c.keypoints, c.keypoints_valid, missed, info.intrinsics, frames=c.frames)
     skin = bare & c.gt["hand_mask"]
     assert skin.sum() > 200 and (seen & skin).sum() < 0.2 * skin.sum()
     obj = bare & c.object_mask
     assert (seen & obj).sum() > 0.8 * obj.sum()
+
+
+def _feet(info, c) -> np.ndarray:
+    """Where the fingers are, visible or hidden."""
+    return finger_footprint(c.keypoints, c.keypoints_valid, info.intrinsics, c.gt["hand_mask"].shape[1:])

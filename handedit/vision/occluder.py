@@ -21,7 +21,7 @@ import pydantic
 from handedit.camera import Intrinsics, project
 from handedit.keypoints import PARENT, WRIST
 from handedit.vision.masks import grow
-from handedit.vision.skin import colour_loglik
+from handedit.vision.skin import colour_loglik, to_ycrcb
 
 
 class OccluderConfig(pydantic.BaseModel):
@@ -36,6 +36,35 @@ class OccluderConfig(pydantic.BaseModel):
         "fingertip a few pixels past the mask is not hidden)"))
 
 
+def _bones(kp: np.ndarray, uv: np.ndarray, ok: np.ndarray, intr: Intrinsics, shape: tuple[int, int], radius_m: float):
+    """Each tracked finger bone's footprint (bool (H,W)) of one hand: a line as wide as the finger at
+    the bone's depth. ``kp`` (21,3) camera frame, ``uv`` (21,2) projected, ``ok`` (21,) usable."""
+    for j, p in enumerate(PARENT):
+        if p < 0 or p == WRIST or not (ok[j] and ok[p]):
+            continue  # finger bones only: the palm's are the mask's own core
+        bone = np.zeros(shape, np.uint8)
+        r = max(1, int(round(intr.fx * radius_m / (0.5 * (kp[p, 2] + kp[j, 2])))))
+        cv2.line(bone, tuple(int(v) for v in np.round(uv[p])), tuple(int(v) for v in np.round(uv[j])), 1, thickness=2 * r)
+        yield bone.astype(bool)
+
+
+def _usable(kp: np.ndarray, valid: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    return np.asarray(valid, bool) & (kp[:, 2] > 0.05) & np.isfinite(uv).all(-1)
+
+
+def finger_footprint(keypoints: np.ndarray, valid: np.ndarray, intr: Intrinsics, shape: tuple[int, int],
+                     cfg: OccluderConfig = OccluderConfig()) -> np.ndarray:
+    """(n,H,W) bool: where the hands' finger bones are, visible or hidden (the region an occluder of the
+    fingers lies in; the measure's truth is the object's pixels there)."""
+    kp = np.asarray(keypoints, float)
+    uv = project(kp, intr)
+    out = np.zeros((len(kp), *shape), bool)
+    for i, s in np.ndindex(*kp.shape[:2]):
+        for foot in _bones(kp[i, s], uv[i, s], _usable(kp[i, s], valid[i, s], uv[i, s]), intr, shape, cfg.finger_radius_m):
+            out[i] |= foot
+    return out
+
+
 def hidden_fingers(keypoints: np.ndarray, valid: np.ndarray, hand_mask: np.ndarray, intr: Intrinsics,
                    cfg: OccluderConfig = OccluderConfig(), frames: np.ndarray | None = None) -> np.ndarray:
     """(n,H,W) bool: pixels where a finger bone of some hand lies outside its mask (the occluder).
@@ -48,31 +77,20 @@ def hidden_fingers(keypoints: np.ndarray, valid: np.ndarray, hand_mask: np.ndarr
     n, S, H, W = np.shape(hand_mask)
     out = np.zeros((n, H, W), bool)
     uv = project(kp, intr)
-    for i in range(n):
-        for s in range(S):
-            ok = np.asarray(valid[i, s], bool) & (kp[i, s, :, 2] > 0.05) & np.isfinite(uv[i, s]).all(-1)
-            if not ok[WRIST] or not hand_mask[i, s].any():
-                continue
-            depth = np.where(ok, kp[i, s, :, 2], np.nan)
-            r_px = intr.fx * cfg.finger_radius_m / np.nanmedian(depth)
-            free = ~grow(hand_mask[i, s], max(1.0, cfg.mask_slack * r_px))
-            found = np.zeros((H, W), bool)
-            for j, p in enumerate(PARENT):
-                if p < 0 or p == WRIST or not (ok[j] and ok[p]):
-                    continue  # finger bones only: the palm's are the mask's own core
-                bone = np.zeros((H, W), np.uint8)
-                a, b = np.round(uv[i, s, p]).astype(int), np.round(uv[i, s, j]).astype(int)
-                r = max(1, int(round(intr.fx * cfg.finger_radius_m / (0.5 * (depth[p] + depth[j])))))
-                cv2.line(bone, tuple(map(int, a)), tuple(map(int, b)), 1, thickness=2 * r)
-                foot = bone.astype(bool)
-                if not foot.any():
-                    continue
-                hidden = foot & free
-                if hidden.sum() >= cfg.min_share * foot.sum():
-                    found |= hidden
-            if frames is not None and found.any():
-                found &= ~_hand_coloured(frames[i], hand_mask[i, s], found, r_px)
-            out[i] |= found
+    for i, s in np.ndindex(n, S):
+        ok = _usable(kp[i, s], valid[i, s], uv[i, s])
+        if not ok[WRIST] or not hand_mask[i, s].any():
+            continue
+        r_px = intr.fx * cfg.finger_radius_m / np.median(kp[i, s, ok, 2])
+        free = ~grow(hand_mask[i, s], max(1.0, cfg.mask_slack * r_px))
+        found = np.zeros((H, W), bool)
+        for foot in _bones(kp[i, s], uv[i, s], ok, intr, (H, W), cfg.finger_radius_m):
+            hidden = foot & free
+            if foot.any() and hidden.sum() >= cfg.min_share * foot.sum():
+                found |= hidden
+        if frames is not None and found.any():
+            found &= ~_hand_coloured(frames[i], hand_mask[i, s], found, r_px)
+        out[i] |= found
     return out
 
 
@@ -90,10 +108,8 @@ def _hand_coloured(frame: np.ndarray, hand: np.ndarray, pixels: np.ndarray, r_px
         if limit is not None and len(ys) > limit:
             keep = rng.choice(len(ys), limit, replace=False)
             ys, xs = ys[keep], xs[keep]
-        rgb = np.ascontiguousarray(frame[ys, xs].reshape(-1, 1, 3))
-        return cv2.cvtColor(rgb, cv2.COLOR_RGB2YCrCb).reshape(-1, 3).astype(np.float32)
+        return to_ycrcb(frame[ys, xs].reshape(-1, 1, 3)).reshape(-1, 3).astype(np.float32)
 
     x = ycrcb(pixels, None)
-    like = colour_loglik(x, ycrcb(hand), 16.0) > colour_loglik(x, ycrcb(ring), 16.0)
-    out[pixels] = like
+    out[pixels] = colour_loglik(x, ycrcb(hand), 16.0) > colour_loglik(x, ycrcb(ring), 16.0)
     return out

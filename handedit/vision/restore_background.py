@@ -575,10 +575,10 @@ class _Propagation:
         st = cfg.align_check_step
         keep = ~hole[::st, ::st]
         target_grey = self.grey(t)[::st, ::st]
-        known = ~hole[win]  # the target's own pixels, and what the window filled: where a later frame's offset is measured
-        if only is not None:
-            known = known.copy()
-            known[hy[~only], hx[~only]] = True
+        if agree is not None:  # the target's own pixels, and what the window filled: where a later frame's offset is measured
+            known = ~hole[win]
+            if only is not None:
+                known[hy[~only], hx[~only]] = True
         cands, valids = [], []
         for j in sources:
             if not self.ok[j]:
