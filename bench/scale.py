@@ -62,12 +62,12 @@ class SimulatedTree:
 def store_objects_per_clip(n_embodiments: int, frames: int, frames_per_chunk: int, hands: int = 2) -> int:
     """Files (objects) a clip adds to the store: every array's zarr.json and one object per
     chunk (image arrays: one shard of F frames; small arrays: F frames per chunk), every group's zarr.json."""
-    from handedit.storage.layout import ARRAYS
+    from handedit.storage.layout import stage_arrays
 
     chunks = math.ceil(frames / frames_per_chunk)
 
     def unit(stage: str) -> int:
-        specs = [a for a in ARRAYS[stage] if a.when in (None, "arm")]
+        specs = [a for a in stage_arrays(stage) if a.when in (None, "arm")]
         return 1 + sum(1 + chunks for _ in specs)
 
     per_clip = sum(unit(s) for s in ("ingest", "registration", "segment")) + 2 * unit("restore_background") + 4

@@ -21,7 +21,7 @@ from handedit.dashboards.release import _png, _table, esc, safe_url
 from handedit.images import decode_rgb
 from handedit.release.samples import sample_key
 from handedit.storage import Location
-from handedit.storage.layout import STAGES
+from handedit.storage.layout import stage_names
 from handedit.storage.releases import ShardReader, read_pairs, read_release, split_release
 
 PER_EMBODIMENT = 4
@@ -56,7 +56,7 @@ def render_release_page(loc: Location, version: str) -> str:
     sheet = json.loads(loc.read_bytes(f"{version}/datasheet.json"))
     log = json.loads(loc.read_bytes(f"{version}/changelog.json"))
     counts = m["counts"]
-    order = {s: i for i, s in enumerate(STAGES)}
+    order = {s: i for i, s in enumerate(stage_names())}
     kept = [{"stage": s, "OK": r["ok"], "given": r["given"], "kept rate": f"{100 * r['rate']:.1f}%" if r["rate"] is not None else "-"}
             for s, r in sorted(sheet["kept_rate"].items(), key=lambda kv: order.get(kv[0], 99))]
     total = sheet["rejections"]["total"]

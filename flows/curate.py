@@ -44,7 +44,7 @@ from handedit.flows.plan import iter_shards, run_key
 from handedit.reasons import Reason
 from handedit.storage import Location, create_or_open_store, open_store
 from handedit.storage.integrity import chunk_object_count, clips_missing_objects
-from handedit.storage.layout import SCHEMA_VERSION, STAGES
+from handedit.storage.layout import SCHEMA_VERSION
 from handedit.storage.ledger import read_ledger, status_counts
 from handedit.storage.shards import (INDEX, LEDGER, has_partitions, is_complete, new_holder, read_manifest, release,
                                      renew, try_claim, write_manifest, write_partition, write_run_log)
@@ -105,14 +105,14 @@ def plan_embodiments(ids: list[str]) -> list[EmbodimentPlan]:
 def model_digests(config: CurateConfig) -> dict[str, str]:
     """Content of each stage's model file (new weights at the same path change the run key)."""
     out = {}
-    for stage in STAGES:
+    for stage in (s.name for s in STAGE_DECLARATIONS):
         for name, d in stage_model_digests(config.stage_config(stage)).items():
             out[stage if name == "model" else f"{stage}:{name}"] = d
     return out
 
 
 def the_run_key(config: CurateConfig, embs: list[EmbodimentPlan]) -> str:
-    params = {s: stage_version_params(config, s) for s in STAGES}
+    params = {s.name: stage_version_params(config, s.name) for s in STAGE_DECLARATIONS}
     versions = {s.name: s.versions(config.stage_config(s.name)) for s in STAGE_DECLARATIONS}
     return run_key(config.frames_per_chunk, {"params": params, "versions": versions, "models": model_digests(config)},
                    [{"id": e.id, "scope": e.scope, "robot": e.robot_digest, "error": e.error} for e in embs], SCHEMA_VERSION)

@@ -1,4 +1,5 @@
-"""The one owner of the Zarr v3 layout: group paths, array schemas, chunking.
+"""The one owner of the Zarr v3 layout: group paths, chunking, codecs, and the stages' schemas
+(each stage declares the arrays it writes in its ``tasks/<stage>.py``; ``stage_layouts`` reads them).
 
 Nothing else in the project builds a store path by hand. The tree is::
 
@@ -39,20 +40,6 @@ SCHEMA_VERSION = 2  # 2: hand axis, registration stage, shard bookkeeping beside
 STORE_SUFFIX = ".zarr"
 SCOPES = ("hand", "hand_arm")
 
-# Stage -> level: which address fields identify one unit of that stage.
-STAGE_LEVEL: dict[str, str] = {
-    "ingest": "clip",
-    "estimate_hands": "clip",  # only for clips whose hands are estimated from the pixels
-    "registration": "clip",
-    "segment": "clip",
-    "restore_background": "scope",
-    "retarget": "embodiment",
-    "render": "embodiment",
-    "composite": "embodiment",
-    "harmonize": "embodiment",
-    "qc": "embodiment",
-}
-STAGES: tuple[str, ...] = tuple(STAGE_LEVEL)
 
 
 @dataclass(frozen=True, order=True)
@@ -65,9 +52,10 @@ class Unit:
     embodiment: str | None = None
 
     def __post_init__(self) -> None:
-        level = STAGE_LEVEL.get(self.stage)
-        if level is None:
-            raise ValueError(f"unknown stage {self.stage!r}; stages are {', '.join(STAGES)}")
+        layout = stage_layouts().get(self.stage)
+        if layout is None:
+            raise ValueError(f"unknown stage {self.stage!r}; stages are {', '.join(stage_layouts())}")
+        level = layout.level
         if (level == "scope") != (self.scope is not None) or (level == "embodiment") != (self.embodiment is not None):
             raise ValueError(f"stage {self.stage!r} is addressed per {level}: got {self}")
         if self.scope is not None and self.scope not in SCOPES:
@@ -135,90 +123,56 @@ class ArraySpec:
         return (n_frames, *(sizes[d] if isinstance(d, str) else d for d in self.tail))
 
 
-_STATUS = ArraySpec("status", (), "int16", ())
-_HAND_STATUS = ArraySpec("hand_status", ("S",), "int16", ("hand",))
-_MASK = ("H", "W")
-_MASK_DIMS = ("y", "x")
-_HAND_MASK = ("S", "H", "W")
-_HAND_MASK_DIMS = ("hand", "y", "x")
+# Building blocks of the stages' output schemas (each ``tasks/<stage>.py`` declares its own).
+STATUS = ArraySpec("status", (), "int16", ())
+HAND_STATUS = ArraySpec("hand_status", ("S",), "int16", ("hand",))
+MASK, MASK_DIMS = ("H", "W"), ("y", "x")
+HAND_MASK, HAND_MASK_DIMS = ("S", "H", "W"), ("hand", "y", "x")
+RGB, RGB_DIMS = ("H", "W", 3), ("y", "x", "rgb")
+LEVELS = ("clip", "scope", "embodiment")  # which address fields identify one unit of a stage
 
-ARRAYS: dict[str, tuple[ArraySpec, ...]] = {
-    "ingest": (
-        ArraySpec("frames", ("H", "W", 3), "uint8", ("y", "x", "rgb"), image=True),
-        ArraySpec("world_from_camera", (4, 4), "float64", ("row", "col")),
-        ArraySpec("keypoints", ("S", 21, 3), "float32", ("hand", "joint", "xyz")),
-        ArraySpec("keypoints_valid", ("S", 21), "bool", ("hand", "joint"), fill=False),
-        ArraySpec("arm_keypoints", ("S", 3, 3), "float32", ("hand", "arm_joint", "xyz"), when="arm"),
-        ArraySpec("arm_valid", ("S", 3), "bool", ("hand", "arm_joint"), when="arm", fill=False),
-        ArraySpec("object_mask", _MASK, "bool", _MASK_DIMS, image=True, when="object", fill=False),
-        ArraySpec("object_pose", (4, 4), "float64", ("row", "col"), when="object"),
-        ArraySpec("object_depth", _MASK, "float32", _MASK_DIMS, image=True, when="object"),  # 0: no surface known
-        ArraySpec("gt_hand_mask", _MASK, "bool", _MASK_DIMS, image=True, when="gt", fill=False),
-        ArraySpec("gt_handarm_mask", _MASK, "bool", _MASK_DIMS, image=True, when="gt", fill=False),
-        ArraySpec("gt_background", ("H", "W", 3), "uint8", ("y", "x", "rgb"), image=True, when="gt"),
-        _STATUS,
-    ),
-    "estimate_hands": (
-        ArraySpec("keypoints", ("S", 21, 3), "float32", ("hand", "joint", "xyz")),
-        ArraySpec("keypoints_raw", ("S", 21, 3), "float32", ("hand", "joint", "xyz")),
-        ArraySpec("keypoints_valid", ("S", 21), "bool", ("hand", "joint"), fill=False),
-        ArraySpec("confidence", ("S", 21), "float32", ("hand", "joint")),
-        ArraySpec("box", ("S", 4), "float32", ("hand", "xyxy")),
-        ArraySpec("p_right", ("S",), "float32", ("hand",)),
-        ArraySpec("reprojection_px", ("S",), "float32", ("hand",)),
-        _HAND_STATUS,
-        _STATUS,
-    ),
-    "registration": (
-        ArraySpec("keypoints", ("S", 21, 3), "float32", ("hand", "joint", "xyz")),
-        ArraySpec("keypoints_valid", ("S", 21), "bool", ("hand", "joint"), fill=False),
-        ArraySpec("arm_keypoints", ("S", 3, 3), "float32", ("hand", "arm_joint", "xyz"), when="arm"),
-        ArraySpec("offset_px", ("S", 2), "float32", ("hand", "uv")),
-        ArraySpec("scale", ("S",), "float32", ("hand",), fill=1.0),
-        _HAND_STATUS,
-        _STATUS,
-    ),
-    "segment": (
-        ArraySpec("hand_mask", _HAND_MASK, "bool", _HAND_MASK_DIMS, image=True, fill=False),
-        ArraySpec("handarm_mask", _HAND_MASK, "bool", _HAND_MASK_DIMS, image=True, fill=False),
-        ArraySpec("confidence", ("S",), "float32", ("hand",)),
-        _HAND_STATUS,
-        _STATUS,
-    ),
-    "restore_background": (
-        ArraySpec("background", ("H", "W", 3), "uint8", ("y", "x", "rgb"), image=True),
-        ArraySpec("filled_from_video", (), "float32", ()),
-        ArraySpec("hole", _MASK, "bool", _MASK_DIMS, image=True, fill=False),  # the restored pixels
-        _STATUS,
-    ),
-    "retarget": (
-        ArraySpec("qpos", ("S", "dof"), "float32", ("hand", "dof")),
-        ArraySpec("root_pose", ("S", 4, 4), "float64", ("hand", "row", "col")),
-        ArraySpec("fingertip_error_mm", ("S",), "float32", ("hand",)),
-        ArraySpec("wrist_error_mm", ("S",), "float32", ("hand",)),
-        _HAND_STATUS,
-        _STATUS,
-    ),
-    "render": (
-        ArraySpec("rgba", ("H", "W", 4), "uint8", ("y", "x", "rgba"), image=True),
-        ArraySpec("depth", _MASK, "float32", _MASK_DIMS, image=True),
-        ArraySpec("robot_side", _MASK, "uint8", _MASK_DIMS, image=True),  # 0: no robot, k+1: hand k's robot
-        _HAND_STATUS,
-        _STATUS,
-    ),
-    "composite": (
-        ArraySpec("image", ("H", "W", 3), "uint8", ("y", "x", "rgb"), image=True),
-        ArraySpec("robot_mask", _HAND_MASK, "bool", _HAND_MASK_DIMS, image=True, fill=False),
-        _HAND_STATUS,
-        _STATUS,
-    ),
-    "harmonize": (
-        ArraySpec("image", ("H", "W", 3), "uint8", ("y", "x", "rgb"), image=True),
-        _STATUS,
-    ),
-    "qc": (_HAND_STATUS, _STATUS),
-}
-PER_HAND_STAGES = frozenset(s for s, specs in ARRAYS.items() if _HAND_STATUS in specs)
+
+@dataclass(frozen=True)
+class StageLayout:
+    """What the store needs of a stage: its level and the arrays it writes."""
+
+    level: str
+    arrays: tuple[ArraySpec, ...]
+
+    @property
+    def per_hand(self) -> bool:
+        return HAND_STATUS in self.arrays
+
+
+_LAYOUTS: dict[str, StageLayout] | None = None
+
+
+def stage_layouts() -> dict[str, StageLayout]:
+    """Every stage's layout in pipeline order. Each stage declares its level and output
+    arrays once, in its ``tasks/<stage>.py`` (``Stage(..., writes=...)``); storage places
+    them (paths, chunking, codecs) and checks them here."""
+    global _LAYOUTS
+    if _LAYOUTS is None:
+        from handedit.tasks import STAGES  # the list of stage declarations; imported on first use
+
+        layouts = {}
+        for st in STAGES:
+            names = [a.name for a in st.writes]
+            if st.level not in LEVELS or "status" not in names or len(set(names)) != len(names):
+                raise ValueError(f"stage {st.name!r} (tasks/{st.name}.py): level must be one of {LEVELS} and "
+                                 f"writes= must name each array once, 'status' included; got {st.level!r}, {names}")
+            layouts[st.name] = StageLayout(st.level, tuple(st.writes))
+        _LAYOUTS = layouts
+    return _LAYOUTS
+
+
+def stage_names() -> tuple[str, ...]:
+    return tuple(stage_layouts())
+
+
+def stage_arrays(stage: str) -> tuple[ArraySpec, ...]:
+    return stage_layouts()[stage].arrays
+
 
 # Which mask of the segment stage a scope uses.
 SCOPE_MASK = {"hand": "hand_mask", "hand_arm": "handarm_mask"}
@@ -239,7 +193,7 @@ LEDGER_COLUMNS: tuple[tuple[str, str], ...] = (
 
 def arrays_for(stage: str, has_object: bool, has_gt: bool, has_arm: bool = False) -> tuple[ArraySpec, ...]:
     flags = {"object": has_object, "gt": has_gt, "arm": has_arm, None: True}
-    return tuple(a for a in ARRAYS[stage] if flags[a.when])
+    return tuple(a for a in stage_arrays(stage) if flags[a.when])
 
 
 def chunk_ranges(n_frames: int, frames_per_chunk: int) -> list[tuple[int, int]]:

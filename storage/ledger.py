@@ -15,7 +15,7 @@ import pandas as pd
 import zarr
 
 from handedit.reasons import Reason
-from handedit.storage.layout import LEDGER_COLUMNS, STAGE_LEVEL, Unit
+from handedit.storage.layout import LEDGER_COLUMNS, Unit, stage_layouts
 from handedit.storage.provenance import read_records
 from handedit.storage.store import read_array
 
@@ -30,18 +30,18 @@ def iter_units(root: zarr.Group, clips=None):
         if f"clips/{clip}" not in root:
             continue
         cg = root[f"clips/{clip}"]
-        for stage, level in STAGE_LEVEL.items():
-            if level == "clip":
+        for stage, layout in stage_layouts().items():
+            if layout.level == "clip":
                 unit = Unit(stage, clip)
                 if unit.path in root:
                     yield unit
-            elif level == "scope" and stage in cg:
+            elif layout.level == "scope" and stage in cg:
                 for scope in sorted(cg[stage].group_keys()):
                     yield Unit(stage, clip, scope=scope)
         if "embodiments" in cg:
             for emb in sorted(cg["embodiments"].group_keys()):
-                for stage, level in STAGE_LEVEL.items():
-                    unit = Unit(stage, clip, embodiment=emb) if level == "embodiment" else None
+                for stage, layout in stage_layouts().items():
+                    unit = Unit(stage, clip, embodiment=emb) if layout.level == "embodiment" else None
                     if unit is not None and unit.path in root:
                         yield unit
 

@@ -122,11 +122,11 @@ def drop_records(root: zarr.Group, unit: Unit, chunks=None) -> None:
 
 def _input_label(name: str) -> str:
     """What an input key names, for people: ``clips/c/source#0/frames`` -> ``ingest data``."""
-    from handedit.storage.layout import STAGE_LEVEL
+    from handedit.storage.layout import stage_layouts
 
     if "#" in name:  # an array of a chunk: <unit path>#<chunk>/<array>
         parts = name.split("#", 1)[0].split("/")
-        stage = "ingest" if parts[-1] == "source" else next((p for p in reversed(parts) if p in STAGE_LEVEL), parts[-1])
+        stage = "ingest" if parts[-1] == "source" else next((p for p in reversed(parts) if p in stage_layouts()), parts[-1])
         return f"{stage} output"
     if "@" in name:  # an attribute: <unit path>@<name>
         return name.rsplit("@", 1)[1]

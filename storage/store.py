@@ -24,7 +24,7 @@ import zarr
 from zarr.codecs import BloscCodec, BloscShuffle
 
 from handedit.storage import handoff
-from handedit.storage.layout import (ARRAYS, PREVIEW_CANDIDATES, PREVIEW_FRAMES, SCHEMA_VERSION, ArraySpec, Unit, arrays_for,
+from handedit.storage.layout import (PREVIEW_CANDIDATES, PREVIEW_FRAMES, SCHEMA_VERSION, ArraySpec, Unit, arrays_for, stage_arrays,
                             preview_path)
 
 # Masks and label maps compress best bit-shuffled; 8-bit colour frames do not (their bits
@@ -310,7 +310,7 @@ def write_chunk(root: zarr.Group, unit: Unit, start: int, arrays: Mapping[str, n
     written: dict[str, np.ndarray] = {}
     for name, value in arrays.items():
         if name not in group:
-            raise KeyError(f"{unit.label} has no array {name!r}; schema: {[a.name for a in ARRAYS[unit.stage]]}")
+            raise KeyError(f"{unit.label} has no array {name!r}; schema: {[a.name for a in stage_arrays(unit.stage)]}")
         target = group[name]
         value = np.asarray(value, dtype=target.dtype)
         stop = start + value.shape[0]

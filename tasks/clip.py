@@ -39,7 +39,6 @@ from handedit.reasons import Reason
 from handedit.storage import Unit, create_unit, open_store, read_records, write_records
 from handedit.storage.integrity import missing_objects, stored_objects
 from handedit.storage.handoff import Handoff, handing_over
-from handedit.storage.layout import STAGES as STAGE_ORDER
 from handedit.storage.location import location_of
 from handedit.storage.provenance import ChunkRecord, changed_inputs, drop_records, is_current, provenance_key
 from handedit.storage.store import CorruptChunk, create_previews
@@ -136,7 +135,7 @@ def _order(nodes) -> list:
         for d in n.deps:
             if (d.unit, d.chunk) in by_id:
                 children.setdefault((d.unit, d.chunk), set()).add(n.id)
-    rank = {s: i for i, s in enumerate(STAGE_ORDER)}
+    rank = {s.name: i for i, s in enumerate(STAGES)}
     heap = [((n.chunk, rank[n.unit.stage], n.unit), n.id) for n in nodes if waiting[n.id] == 0]
     heapq.heapify(heap)
     out = []

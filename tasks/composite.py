@@ -17,7 +17,7 @@ import numpy as np
 from handedit.camera import Intrinsics, project
 from handedit.reasons import Reason, combine, gate, per_frame
 from handedit.storage import Unit, writable
-from handedit.storage.layout import SCOPE_MASK
+from handedit.storage.layout import ArraySpec, HAND_MASK, HAND_MASK_DIMS, HAND_STATUS, RGB, RGB_DIMS, SCOPE_MASK, STATUS
 from handedit.tasks.common import ChunkJob, StageOutput
 from handedit.tasks.stage import At, Inputs, Stage
 from handedit.vision.arm import limbs, off_arm_shares, off_arm_status
@@ -92,4 +92,10 @@ def _side_max(values: np.ndarray) -> list[float | None]:
     return [float(np.nanmax(v)) if np.isfinite(v).any() else None for v in np.asarray(values).T]
 
 
-STAGE = Stage("composite", "embodiment", CompositeConfig, reads, body)
+WRITES = (
+    ArraySpec("image", RGB, "uint8", RGB_DIMS, image=True),
+    ArraySpec("robot_mask", HAND_MASK, "bool", HAND_MASK_DIMS, image=True, fill=False),
+    HAND_STATUS,
+    STATUS,
+)
+STAGE = Stage("composite", "embodiment", CompositeConfig, reads, body, writes=WRITES)

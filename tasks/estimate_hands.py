@@ -11,6 +11,7 @@ import numpy as np
 from handedit.camera import Intrinsics
 from handedit.reasons import combine_hands, gate, per_frame
 from handedit.storage import Unit
+from handedit.storage.layout import ArraySpec, HAND_STATUS, STATUS
 from handedit.tasks.common import ChunkJob, StageOutput
 from handedit.tasks.stage import At, Inputs, Stage
 from handedit.vision import estimate_hands as domain
@@ -42,5 +43,16 @@ def body(inp: Inputs, job: ChunkJob) -> StageOutput:
                        hand_details=est.details)
 
 
-STAGE = Stage("estimate_hands", "clip", domain.EstimateHandsConfig, reads, body,
+WRITES = (
+    ArraySpec("keypoints", ("S", 21, 3), "float32", ("hand", "joint", "xyz")),
+    ArraySpec("keypoints_raw", ("S", 21, 3), "float32", ("hand", "joint", "xyz")),
+    ArraySpec("keypoints_valid", ("S", 21), "bool", ("hand", "joint"), fill=False),
+    ArraySpec("confidence", ("S", 21), "float32", ("hand", "joint")),
+    ArraySpec("box", ("S", 4), "float32", ("hand", "xyxy")),
+    ArraySpec("p_right", ("S",), "float32", ("hand",)),
+    ArraySpec("reprojection_px", ("S",), "float32", ("hand",)),
+    HAND_STATUS,
+    STATUS,
+)
+STAGE = Stage("estimate_hands", "clip", domain.EstimateHandsConfig, reads, body, writes=WRITES,
               whole_clip=lambda plan, track: True, applies=lambda plan: plan.estimate_hands)

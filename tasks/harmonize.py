@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from handedit.reasons import combine, gate
 from handedit.storage import Unit, writable
+from handedit.storage.layout import ArraySpec, RGB, RGB_DIMS, STATUS
 from handedit.tasks.common import ChunkJob, StageOutput
 from handedit.tasks.stage import At, Inputs, Stage
 from handedit.vision.harmonize import HarmonizeConfig, harmonize as harmonize_frames
@@ -22,4 +23,8 @@ def body(inp: Inputs, job: ChunkJob) -> StageOutput:
     return StageOutput({"image": result.image}, combine(result.status, gate(comp["status"])), method=result.method)
 
 
-STAGE = Stage("harmonize", "embodiment", HarmonizeConfig, reads, body)
+WRITES = (
+    ArraySpec("image", RGB, "uint8", RGB_DIMS, image=True),
+    STATUS,
+)
+STAGE = Stage("harmonize", "embodiment", HarmonizeConfig, reads, body, writes=WRITES)

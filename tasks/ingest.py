@@ -12,6 +12,7 @@ from dataclasses import replace
 import numpy as np
 
 from handedit.sources import frame_status, open_source_json
+from handedit.storage.layout import ArraySpec, MASK, MASK_DIMS, RGB, RGB_DIMS, STATUS
 from handedit.sources.base import IngestConfig, on_sides
 from handedit.tasks.common import ChunkJob, StageOutput
 from handedit.tasks.stage import At, Inputs, Stage, Value
@@ -43,4 +44,19 @@ def body(inp: Inputs, job: ChunkJob) -> StageOutput:
     return StageOutput(arrays, status, method=type(source).__name__, details=details, extra=extra)
 
 
-STAGE = Stage("ingest", "clip", IngestConfig, reads, body)
+WRITES = (
+    ArraySpec("frames", RGB, "uint8", RGB_DIMS, image=True),
+    ArraySpec("world_from_camera", (4, 4), "float64", ("row", "col")),
+    ArraySpec("keypoints", ("S", 21, 3), "float32", ("hand", "joint", "xyz")),
+    ArraySpec("keypoints_valid", ("S", 21), "bool", ("hand", "joint"), fill=False),
+    ArraySpec("arm_keypoints", ("S", 3, 3), "float32", ("hand", "arm_joint", "xyz"), when="arm"),
+    ArraySpec("arm_valid", ("S", 3), "bool", ("hand", "arm_joint"), when="arm", fill=False),
+    ArraySpec("object_mask", MASK, "bool", MASK_DIMS, image=True, when="object", fill=False),
+    ArraySpec("object_pose", (4, 4), "float64", ("row", "col"), when="object"),
+    ArraySpec("object_depth", MASK, "float32", MASK_DIMS, image=True, when="object"),  # 0: no surface known
+    ArraySpec("gt_hand_mask", MASK, "bool", MASK_DIMS, image=True, when="gt", fill=False),
+    ArraySpec("gt_handarm_mask", MASK, "bool", MASK_DIMS, image=True, when="gt", fill=False),
+    ArraySpec("gt_background", RGB, "uint8", RGB_DIMS, image=True, when="gt"),
+    STATUS,
+)
+STAGE = Stage("ingest", "clip", IngestConfig, reads, body, writes=WRITES)

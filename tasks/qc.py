@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from handedit.qc import QCConfig, final_status
 from handedit.storage import Unit
-from handedit.storage.layout import PER_HAND_STAGES
+from handedit.storage.layout import HAND_STATUS, STATUS, stage_layouts
 from handedit.tasks.common import ChunkJob, StageOutput
 from handedit.tasks.stage import At, Inputs, Stage
 
@@ -14,7 +14,7 @@ def upstream(clip: str, emb: str, track: str) -> list[tuple[Unit, tuple[str, ...
     units = [Unit("ingest", clip), Unit("registration", clip), Unit("segment", clip),
              Unit("restore_background", clip, scope=track),
              *(Unit(s, clip, embodiment=emb) for s in ("retarget", "render", "composite", "harmonize"))]
-    return [(u, ("status", *(("hand_status",) if u.stage in PER_HAND_STAGES else ()))) for u in units]
+    return [(u, ("status", *(("hand_status",) if stage_layouts()[u.stage].per_hand else ()))) for u in units]
 
 
 def reads(at: At) -> list:
@@ -33,4 +33,5 @@ def body(inp: Inputs, job: ChunkJob) -> StageOutput:
     return StageOutput({}, status, method=f"status-gate:{cfg.keep}", hand_status=hand_status)
 
 
-STAGE = Stage("qc", "embodiment", QCConfig, reads, body)
+WRITES = (HAND_STATUS, STATUS)
+STAGE = Stage("qc", "embodiment", QCConfig, reads, body, writes=WRITES)

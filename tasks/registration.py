@@ -5,6 +5,7 @@ from __future__ import annotations
 from handedit.camera import Intrinsics
 from handedit.reasons import combine, combine_hands, follow_hands, gate
 from handedit.storage import Unit
+from handedit.storage.layout import ArraySpec, HAND_STATUS, STATUS
 from handedit.tasks.common import ChunkJob, StageOutput
 from handedit.tasks.stage import At, Inputs, Stage
 from handedit.vision.registration import RegistrationConfig, register as register_keypoints
@@ -47,4 +48,13 @@ def body(inp: Inputs, job: ChunkJob) -> StageOutput:
     return StageOutput(arrays, combine(r.status, ok), method=r.method, extra=extra, hand_status=hand_status)
 
 
-STAGE = Stage("registration", "clip", RegistrationConfig, reads, body)
+WRITES = (
+    ArraySpec("keypoints", ("S", 21, 3), "float32", ("hand", "joint", "xyz")),
+    ArraySpec("keypoints_valid", ("S", 21), "bool", ("hand", "joint"), fill=False),
+    ArraySpec("arm_keypoints", ("S", 3, 3), "float32", ("hand", "arm_joint", "xyz"), when="arm"),
+    ArraySpec("offset_px", ("S", 2), "float32", ("hand", "uv")),
+    ArraySpec("scale", ("S",), "float32", ("hand",), fill=1.0),
+    HAND_STATUS,
+    STATUS,
+)
+STAGE = Stage("registration", "clip", RegistrationConfig, reads, body, writes=WRITES)

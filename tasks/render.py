@@ -8,6 +8,7 @@ from handedit.camera import Intrinsics
 from handedit.reasons import Reason, combine, gate, per_frame
 from handedit.render.stage import RenderConfig, render_stage
 from handedit.storage import Unit
+from handedit.storage.layout import ArraySpec, HAND_STATUS, MASK, MASK_DIMS, STATUS
 from handedit.tasks.common import ChunkJob, StageOutput
 from handedit.tasks.stage import At, Inputs, Stage, Value
 
@@ -30,4 +31,11 @@ def body(inp: Inputs, job: ChunkJob) -> StageOutput:
                        combine(per_frame(hand_status), gate(ret["status"])), method=result.method, hand_status=hand_status)
 
 
-STAGE = Stage("render", "embodiment", RenderConfig, reads, body)
+WRITES = (
+    ArraySpec("rgba", ("H", "W", 4), "uint8", ("y", "x", "rgba"), image=True),
+    ArraySpec("depth", MASK, "float32", MASK_DIMS, image=True),
+    ArraySpec("robot_side", MASK, "uint8", MASK_DIMS, image=True),  # 0: no robot, k+1: hand k's robot
+    HAND_STATUS,
+    STATUS,
+)
+STAGE = Stage("render", "embodiment", RenderConfig, reads, body, writes=WRITES)

@@ -14,7 +14,7 @@ import numpy as np
 
 from handedit.reasons import combine, gate
 from handedit.storage import Unit
-from handedit.storage.layout import SCOPE_MASK
+from handedit.storage.layout import ArraySpec, MASK, MASK_DIMS, RGB, RGB_DIMS, SCOPE_MASK, STATUS
 from handedit.tasks.common import ChunkJob, StageOutput
 from handedit.tasks.stage import At, Inputs, Stage
 from handedit.vision.restore_background import RestoreConfig, restore_background as restore
@@ -85,4 +85,10 @@ def body(inp: Inputs, job: ChunkJob) -> StageOutput:
     return StageOutput(arrays, combine(result.status, usable[targets]), method=result.method)
 
 
-STAGE = Stage("restore_background", "scope", RestoreConfig, reads, body)
+WRITES = (
+    ArraySpec("background", RGB, "uint8", RGB_DIMS, image=True),
+    ArraySpec("filled_from_video", (), "float32", ()),
+    ArraySpec("hole", MASK, "bool", MASK_DIMS, image=True, fill=False),  # the restored pixels
+    STATUS,
+)
+STAGE = Stage("restore_background", "scope", RestoreConfig, reads, body, writes=WRITES)

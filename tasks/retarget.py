@@ -15,7 +15,7 @@ from handedit.retarget import RetargetConfig
 from handedit.retarget.qc import RetargetQCConfig
 from handedit.retarget.sides import SidesResult, preview_intrinsics, retarget_hand_arm_sides, retarget_sides
 from handedit.storage import Unit
-from handedit.storage.layout import REVIEWS_ATTR
+from handedit.storage.layout import ArraySpec, HAND_STATUS, REVIEWS_ATTR, STATUS
 from handedit.tasks.common import ChunkJob, StageOutput
 from handedit.tasks.stage import At, Attr, Inputs, Stage, Value
 
@@ -119,5 +119,13 @@ def _side_world(wfc: np.ndarray, side: str) -> np.ndarray:
     return mirror_world(wfc) if side == "left" else wfc
 
 
-STAGE = Stage("retarget", "embodiment", RetargetConfig, reads, body,
+WRITES = (
+    ArraySpec("qpos", ("S", "dof"), "float32", ("hand", "dof")),
+    ArraySpec("root_pose", ("S", 4, 4), "float64", ("hand", "row", "col")),
+    ArraySpec("fingertip_error_mm", ("S",), "float32", ("hand",)),
+    ArraySpec("wrist_error_mm", ("S",), "float32", ("hand",)),
+    HAND_STATUS,
+    STATUS,
+)
+STAGE = Stage("retarget", "embodiment", RetargetConfig, reads, body, writes=WRITES,
               whole_clip=lambda plan, track: track == "hand_arm", uses=(RetargetQCConfig,))

@@ -5,6 +5,7 @@ from __future__ import annotations
 from handedit.camera import Intrinsics, project
 from handedit.reasons import Reason, combine, combine_hands, follow_hands, gate, per_frame
 from handedit.storage import Unit
+from handedit.storage.layout import ArraySpec, HAND_MASK, HAND_MASK_DIMS, HAND_STATUS, STATUS
 from handedit.tasks.common import ChunkJob, StageOutput
 from handedit.tasks.stage import At, Inputs, Stage
 from handedit.vision.arm import limbs
@@ -45,4 +46,11 @@ def body(inp: Inputs, job: ChunkJob) -> StageOutput:
     return StageOutput(arrays, combine(per_frame(hand_status), ok), method=result.method, hand_status=hand_status)
 
 
-STAGE = Stage("segment", "clip", SegmentConfig, reads, body)
+WRITES = (
+    ArraySpec("hand_mask", HAND_MASK, "bool", HAND_MASK_DIMS, image=True, fill=False),
+    ArraySpec("handarm_mask", HAND_MASK, "bool", HAND_MASK_DIMS, image=True, fill=False),
+    ArraySpec("confidence", ("S",), "float32", ("hand",)),
+    HAND_STATUS,
+    STATUS,
+)
+STAGE = Stage("segment", "clip", SegmentConfig, reads, body, writes=WRITES)

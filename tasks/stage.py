@@ -27,6 +27,7 @@ import numpy as np
 from pydantic import BaseModel
 
 from handedit.storage import Unit, chunk_ranges, read_chunk
+from handedit.storage.layout import ArraySpec
 from handedit.storage.store import dumps
 from handedit.tasks.plan import ClipPlan
 
@@ -116,6 +117,7 @@ class Stage:
     whole_clip: Callable[[ClipPlan, str], bool] = _never  # (plan, track): one node covers every frame
     applies: Callable[[ClipPlan], bool] = _always  # whether the clip has this stage at all
     uses: tuple[type, ...] = ()  # config classes the body derives from its config (their VERSION is keyed too)
+    writes: tuple[ArraySpec, ...] = ()  # the unit's arrays; the store places them (``storage.layout``)
 
     def versions(self, cfg: BaseModel) -> dict[str, int]:
         """VERSION of every config class this stage runs: its own, those nested in it, those it derives."""

@@ -15,7 +15,7 @@ from handedit.flows.curate import run_curate
 from handedit.reasons import Reason
 from handedit.sources import VideoSpec
 from handedit.sources.synthetic import make_clip_specs
-from handedit.storage import ARRAYS, Unit, open_store, read_ledger, read_records
+from handedit.storage import Unit, open_store, read_ledger, read_records, stage_arrays
 from handedit.storage.layout import arrays_for
 
 W, H, T, F = 192, 144, 16, 8
@@ -60,7 +60,7 @@ def test_every_array_status_and_record(first_run):
             assert (status != Reason.PENDING).all(), f"{unit.label} left frames pending: {status}"
             records = read_records(root, unit)
             assert sorted(records) == list(range(n_chunks)), unit.label
-            names = {a.name for a in ARRAYS[unit.stage] if a.name in group}
+            names = {a.name for a in stage_arrays(unit.stage) if a.name in group}
             for k, rec in records.items():
                 assert rec.outcome == "ok" and rec.stage == unit.stage and (rec.start, rec.stop) == (k * F, (k + 1) * F)
                 assert rec.key and rec.inputs and rec.code_version and rec.host and rec.started

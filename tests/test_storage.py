@@ -307,3 +307,32 @@ def test_walks_hand_over_their_chunks_and_store_the_same_data(tmp_path, monkeypa
                 np.testing.assert_array_equal(kept[unit.path][name][:], plain[unit.path][name][:], err_msg=f"{unit.path}/{name}")
         a, b = read_records(kept, unit), read_records(plain, unit)
         assert {k: r.outputs for k, r in a.items()} == {k: r.outputs for k, r in b.items()} and a
+
+
+def test_a_stage_declares_its_own_arrays_and_the_store_lays_them_out(root, monkeypatch):
+    """A new stage is its tasks module: its ``writes=`` is the unit's schema (no table in storage)."""
+    import handedit.storage.layout as layout
+    import handedit.tasks as tasks
+    from handedit.storage.layout import HAND_STATUS, MASK, MASK_DIMS, STATUS, ArraySpec
+    from handedit.tasks.stage import Stage
+    from handedit.vision.harmonize import HarmonizeConfig
+
+    def never(*_):
+        raise AssertionError("not walked here")
+
+    shade = Stage("shade", "embodiment", HarmonizeConfig, never, never,
+                  writes=(ArraySpec("shadow", MASK, "float32", MASK_DIMS, image=True), HAND_STATUS, STATUS))
+    monkeypatch.setattr(tasks, "STAGES", (*tasks.STAGES, shade))
+    monkeypatch.setattr(layout, "_LAYOUTS", None)
+    unit = Unit("shade", "c1", embodiment="allegro")
+    assert unit.path == "clips/c1/embodiments/allegro/shade" and layout.stage_layouts()["shade"].per_hand
+    create_unit(root, unit, 8, {"H": 4, "W": 6, "S": 2}, F)
+    assert root[unit.path]["shadow"].shape == (8, 4, 6) and root[unit.path]["hand_status"].shape == (8, 2)
+    with pytest.raises(KeyError, match="schema: \\['shadow', 'hand_status', 'status'\\]"):
+        write_chunk(root, unit, 0, {"light": np.zeros((4,))})
+
+    broken = Stage("glow", "embodiment", HarmonizeConfig, never, never, writes=(HAND_STATUS,))  # no status
+    monkeypatch.setattr(tasks, "STAGES", (*tasks.STAGES, broken))
+    monkeypatch.setattr(layout, "_LAYOUTS", None)
+    with pytest.raises(ValueError, match=r"stage 'glow' \(tasks/glow.py\).*'status'"):
+        Unit("glow", "c1", embodiment="allegro")
