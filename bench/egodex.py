@@ -4,6 +4,7 @@
         [--resize 960x540] [--embodiment allegro --embodiment xarm_ability] [--workers 2] [--figure out.png]
         [--out runs/egodex]          # keep the run (default: a temporary folder)
     .venv/bin/python bench/egodex.py --store runs/egodex    # measure an existing run (before/after)
+    .venv/bin/python bench/egodex.py --roster --frames 0:32 --out runs/roster   # every available embodiment
 
 Runs ``handedit curate --source egodex`` on a local 2-worker Dask cluster and prints, from
 the chunk provenance records: ms per source frame for each per-clip stage, ms per frame
@@ -14,7 +15,8 @@ replaced hand's mask under its robot, and the share left unchanged (still the hu
 The hand-arm measures (``arm_report``), from EgoDex's own 3-D arm annotations: the forearm
 coverage (the share of the projected forearm capsule, wrist to elbow, 4 cm radius, inside
 the hand-arm mask: a sleeve left beside the robot arm scores low), per clip and side,
-pixel-weighted over the frames the hand is in view; the kept hand-arm frames with more than
+pixel-weighted over the frames the hand is in view, also at 3 and 2 cm (the forearm's core:
+a slim forearm leaves table inside the 4 cm capsule); the kept hand-arm frames with more than
 25 % of a robot outside the human arm's corridor (the hand-arm mask plus the capsule, grown
 by 5 % of the image width); and the RESIDUE rejections per clip: restoration's (frames) and
 composite's, which judges residue where no robot covers it (frame-sides per embodiment).
@@ -23,6 +25,12 @@ the hole's area), per clip and scope, over all frames and the first 24 (where th
 clips' hands hold still). ``--figure`` writes source | masks | restored background | pseudo-GT (two robots) for a few
 frames, one sheet per embodiment (``NAME-<embodiment>.png`` when there are several), made
 from the run (the EgoDex licence forbids committing it).
+
+``--roster`` curates with every available embodiment and adds each one's ms per frame for
+the per-embodiment stages, then, as its last line, the projected CPU-hours for 200M pairs
+with the paper's mix (13 hand-only, 13 hand-arm; each track's mean over the embodiments
+measured, the per-source stages spread over a source frame's 26 pairs). Task wall times
+with one thread per worker stand in for CPU time.
 """
 
 from __future__ import annotations
@@ -59,6 +67,87 @@ def stage_costs(root) -> dict[str, float]:
     return {s: 1000 * secs[s] / frames[s] for s in secs if frames[s]}
 
 
+def available_embodiments() -> list[str]:
+    from handedit.embodiments import asset_status, list_embodiments
+
+    return [e.id for e in list_embodiments() if asset_status(e)[0]]
+
+
+def source_costs(root) -> dict[str, float]:
+    """stage -> ms per source frame of the per-clip stages, every scope included (restoration
+    runs once per scope: the hand scope, and the hand-arm scope when a hand-arm is curated)."""
+    from handedit.storage import Unit
+    from handedit.storage.ledger import iter_units
+    from handedit.storage.provenance import read_records
+
+    n = sum(root[Unit("ingest", c).path]["status"].shape[0] for c in root["clips"].group_keys())
+    secs = defaultdict(float)
+    for unit in iter_units(root):
+        if unit.embodiment is None:
+            secs[unit.stage] += sum(rec.seconds for rec in read_records(root, unit).values())
+    return {s: 1000 * v / n for s, v in secs.items()} if n else {}
+
+
+def embodiment_costs(root) -> dict[str, dict[str, float]]:
+    """embodiment -> stage -> ms per frame (the per-embodiment stages, from provenance)."""
+    from handedit.storage.ledger import iter_units
+    from handedit.storage.provenance import read_records
+
+    secs, frames = defaultdict(float), defaultdict(int)
+    for unit in iter_units(root):
+        if unit.embodiment is None:
+            continue
+        for rec in read_records(root, unit).values():
+            secs[unit.embodiment, unit.stage] += rec.seconds
+            frames[unit.embodiment, unit.stage] += rec.stop - rec.start
+    out: dict[str, dict[str, float]] = defaultdict(dict)
+    for (e, stage), n in frames.items():
+        if n:
+            out[e][stage] = 1000 * secs[e, stage] / n
+    return dict(out)
+
+
+# The paper's roster: 13 hand-only and 13 hand-arm embodiments; a pair is one source frame
+# edited into one embodiment, so a source frame's shared work is spread over the 26 pairs
+ROSTER_MIX = {"hand": 13, "hand_arm": 13}
+PAIRS = 200e6
+
+
+def roster_projection(shared_ms: float, per_embodiment: dict[str, float], tracks: dict[str, str]) -> dict:
+    """Cost per pair with the roster's mix: the shared per-source work over the 26 pairs of a
+    source frame, plus each track's mean per-embodiment cost (over the embodiments measured)."""
+    by_track = {t: [ms for e, ms in per_embodiment.items() if tracks[e] == t] for t in ROSTER_MIX}
+    n = sum(ROSTER_MIX.values())
+    mean = {t: sum(v) / len(v) for t, v in by_track.items() if v}
+    per_pair_ms = shared_ms / n + sum(ROSTER_MIX[t] * mean[t] for t in mean) / sum(ROSTER_MIX[t] for t in mean)
+    return {"track_ms": mean, "per_pair_ms": per_pair_ms, "cpu_hours": PAIRS * per_pair_ms / 1000 / 3600}
+
+
+def print_roster(root) -> None:
+    """Per embodiment: ms per frame of each per-embodiment stage; the projection's last line."""
+    from handedit.embodiments import get_embodiment
+
+    shared = source_costs(root)
+    per = embodiment_costs(root)
+    stages = [s for s in ("retarget", "render", "composite", "harmonize", "qc") if any(s in v for v in per.values())]
+    tracks = {e: get_embodiment(e).track for e in per}
+    print("\nper source frame (shared by every embodiment), ms: " +
+          ", ".join(f"{s} {ms:.1f}" for s, ms in shared.items()) + f"; total {sum(shared.values()):.1f}")
+    print(f"\nper frame and embodiment, ms:\n  {'embodiment':<22}{'track':<10}" + "".join(f"{s:>11}" for s in stages)
+          + f"{'total':>10}")
+    total = {}
+    for e in sorted(per, key=lambda e: (tracks[e], e)):
+        total[e] = sum(per[e].get(s, 0.0) for s in stages)
+        print(f"  {e:<22}{tracks[e]:<10}" + "".join(f"{per[e].get(s, float('nan')):>11.1f}" for s in stages)
+              + f"{total[e]:>10.1f}")
+    proj = roster_projection(sum(shared.values()), total, tracks)
+    print("\nper pair with the roster's mix (13 hand-only, 13 hand-arm; each track's mean over the embodiments "
+          "measured; the shared work over 26 pairs): " + ", ".join(f"{t} {ms:.1f} ms" for t, ms in proj["track_ms"].items())
+          + f"; {proj['per_pair_ms']:.1f} ms per pair")
+    print(f"projected: {proj['cpu_hours']:,.0f} CPU-hours for 200M pairs")
+
+
+
 def coverage(root, clip: str, emb: str) -> tuple[float, float]:
     """(share of replaced hands' mask pixels under their robot, share left unchanged) on kept frames."""
     import numpy as np
@@ -83,6 +172,11 @@ def coverage(root, clip: str, emb: str) -> tuple[float, float]:
             under += (m & robot[k]).sum()
             left += (m & (np.abs(img.astype(int) - f).max(-1) <= 2)).sum()
     return under / max(total, 1), left / max(total, 1)
+
+
+# The issue's measure is the 4 cm capsule; the narrower ones are the forearm's core: a slim
+# forearm (or an annotated elbow a little beside the visible one) leaves table inside 4 cm.
+COVERAGE_RADII_M = (0.04, 0.03, 0.02)
 
 
 def arm_report(root) -> dict:
@@ -115,16 +209,15 @@ def arm_report(root) -> dict:
         hs, handarm = reg["hand_status"][:], seg["handarm_mask"][:]  # read once: every side and embodiment uses it
         shape = (intr.height, intr.width)
         for k, side in enumerate(ing.attrs["hands"]):
-            inside = total = 0
-            for t in np.flatnonzero(hs[:, k] == Reason.OK):
-                if not arm_ok[t, k, 0]:
-                    continue
-                cap = forearm_capsule(kp[t, k, 0], arm[t, k, 0], intr, shape)
-                if coverage(handarm[t, k], cap) is None:
-                    continue
-                inside += int((handarm[t, k] & cap).sum())
-                total += int(cap.sum())
-            out["coverage"][(c, side)] = inside / total if total else float("nan")
+            inside, total = defaultdict(int), defaultdict(int)
+            for t in np.flatnonzero((hs[:, k] == Reason.OK) & arm_ok[:, k, 0]):
+                for r in COVERAGE_RADII_M:
+                    cap = forearm_capsule(kp[t, k, 0], arm[t, k, 0], intr, shape, radius_m=r)
+                    if coverage(handarm[t, k], cap) is None:
+                        break  # the forearm is out of view (judged at the widest radius: the frames stay the same)
+                    inside[r] += int((handarm[t, k] & cap).sum())
+                    total[r] += int(cap.sum())
+            out["coverage"][(c, side)] = {r: inside[r] / total[r] if total[r] else float("nan") for r in COVERAGE_RADII_M}
         out["residue"][c] = int(sum((root[Unit("restore_background", c, scope=s).path]["status"][:] == Reason.RESIDUE).sum()
                                     for s in ("hand", "hand_arm") if Unit("restore_background", c, scope=s).path in root))
         L = limbs(kp, arm, arm_ok)
@@ -143,9 +236,10 @@ def arm_report(root) -> dict:
 
 
 def print_arm_report(rep: dict) -> None:
-    print("\nforearm coverage (share of the 4 cm forearm capsule inside the hand-arm mask), per clip and hand:")
+    radii = "  ".join(f"{100 * r:.0f} cm" for r in COVERAGE_RADII_M)
+    print(f"\nforearm coverage (share of the forearm capsule inside the hand-arm mask), per clip and hand, capsule radius {radii}:")
     for (c, side), v in rep["coverage"].items():
-        print(f"  {c:<34} {side:<6} {v:6.2f}")
+        print(f"  {c:<34} {side:<6} " + "  ".join(f"{v[r]:5.2f}" for r in COVERAGE_RADII_M))
     print("\nkept hand-arm frame-sides with > 25 % of the robot outside the arm corridor:")
     for (c, e), (bad, n) in rep["off_arm"].items():
         print(f"  {c:<34} {e:<14} {bad:>4} of {n}")
@@ -181,6 +275,8 @@ def main() -> None:
     ap.add_argument("--figure", help="write a contact sheet PNG here (not to be committed: CC BY-NC-ND data)")
     ap.add_argument("--out", help="keep the run in this folder (default: a temporary one)")
     ap.add_argument("--store", help="measure this existing run (its folder) instead of curating")
+    ap.add_argument("--roster", action="store_true", help="every available embodiment; print each one's cost per "
+                    "stage and, last, the projected CPU-hours for 200M pairs")
     args = ap.parse_args()
     if args.store:
         from handedit.storage import open_store
@@ -192,6 +288,8 @@ def main() -> None:
             print(f"  {u['clip']:<34} {u['embodiment']:<14} {str(u['side']):<6} {u['kept']:>4}/{u['frames']:<4} "
                   f"{u['kept'] / max(u['frames'], 1):6.2f}")
         print_arm_report(arm_report(root))
+        if args.roster:
+            print_roster(root)
         if args.figure:
             clips = sorted(root["clips"].group_keys())
             embs = args.embodiment or sorted({u["embodiment"] for u in units if u["embodiment"]})
@@ -210,10 +308,11 @@ def main() -> None:
     from handedit.storage import Unit, open_store
     from handedit.storage.summary import run_summary
 
-    embs = args.embodiment or ["allegro", "xarm_ability"]
+    embs = args.embodiment or (available_embodiments() if args.roster else ["allegro", "xarm_ability"])
     w, h = (int(v) for v in args.resize.split("x"))
     tree = EgoDexTree(root=Path(args.root), frames=None if args.full else parse_frames(args.frames), resize=(w, h))
     tmp = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="handedit-egodex-"))
+    tmp.mkdir(parents=True, exist_ok=True)  # Prefect's home below it
     os.environ.setdefault("PREFECT_HOME", str(tmp / "prefect"))
     with prefect_test_harness(server_startup_timeout=180), \
             LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True, host="127.0.0.1",
@@ -250,6 +349,8 @@ def main() -> None:
             under, left = coverage(root, c, e)
             print(f"  {c:<34} {e:<14} {under:6.2f} {left:6.3f}")
     print_arm_report(arm_report(root))
+    if args.roster:
+        print_roster(root)
     if args.figure:
         figures(root, clips, embs, Path(args.figure))
 

@@ -168,6 +168,32 @@ def test_plausibility_ranks_before_reachability():
     assert score(0.02, 1.0).key() < score(float("nan"), 1.0).key()  # not in view ranks last
 
 
+def test_frames_composite_would_drop_as_off_arm_count_against_a_base():
+    """A base that keeps every critical frame but fills the view off the arm in most of them
+    (composite's OFF_ARM would drop those) ranks below one that loses a few to the body."""
+    full = CandidateScore(0, 0, 0, 0, np.eye(4), 1, "", 1.0, 1.0, 5.0, 0.2, 0.1, off_corridor=0.55, off_arm_rate=0.75)
+    fewer = CandidateScore(1, 0, 0, 0, np.eye(4), 1, "", 0.81, 0.81, 5.0, 0.2, 0.1, off_corridor=0.07)
+    assert fewer.key() < full.key()
+    assert CandidateScore(2, 0, 0, 0, np.eye(4), 1, "", 1.0, 1.0, 5.0, 0.2, 0.1, off_corridor=0.07).key() < fewer.key()
+
+
+def test_the_footprint_is_the_links_visual_hulls():
+    """Each link's hull points, projected and filled: outside the corridor counts, inside
+    does not, a link behind the camera is not in view."""
+    from handedit.retarget.plausibility import _footprint_camera, silhouette_outside
+
+    view = BaseView(INTR, np.full((1, 4, 3), np.nan), True)
+    intr, shape = _footprint_camera(view)
+    corridor = np.zeros(shape, bool)
+    corridor[:, : shape[1] // 2] = True  # the left half of the image
+    cube = np.array([[x, y, z] for x in (-0.05, 0.05) for y in (-0.05, 0.05) for z in (-0.05, 0.05)])
+    left, right = cube + (-0.3, 0, 1.0), cube + (0.3, 0, 1.0)
+    assert silhouette_outside([left], view, corridor) == 0.0
+    assert silhouette_outside([right], view, corridor) == 1.0
+    assert 0.4 < silhouette_outside([left, right], view, corridor) < 0.6
+    assert np.isnan(silhouette_outside([cube + (0, 0, -1.0)], view, corridor))
+
+
 def test_search_ranks_by_footprint(assets):
     """With a view, kept candidates carry footprint and forearm measures, and the ranking
     follows the key (footprint before reachability)."""

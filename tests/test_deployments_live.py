@@ -1,6 +1,7 @@
 """deploy/prefect.yaml on a real Prefect server: `prefect deploy`, a process worker
 (`handedit worker`), `prefect deployment run` of the release deployment, the scheduled
-incremental release picking up a clip added to its source, and the worker stopping on SIGTERM.
+incremental release picking up a clip added to its source, and the worker stopping on SIGTERM
+once the flow run it is running has finished.
 
 The server, the work pool, the worker and every flow run are real processes on
 127.0.0.1 (not the test harness); the project's deployments are used as written, with
@@ -9,6 +10,7 @@ their parameters pointed at this test's folders and the nightly schedule shorten
 
 from __future__ import annotations
 
+import asyncio
 import os
 import signal
 import socket
@@ -78,13 +80,13 @@ class Server:
         ids = [d["id"] for d in deps]
         return httpx.post(f"{self.api}/flow_runs/filter", json={"flow_runs": {"deployment_id": {"any_": ids}}}).json()
 
-    def wait(self, what, timeout=420) -> dict:
+    def wait(self, what, timeout=420, poll=2.0) -> dict:
         deadline = time.time() + timeout
         while time.time() < deadline:
             found = what()
             if found:
                 return found
-            time.sleep(2)
+            time.sleep(poll)
         raise AssertionError(f"timed out waiting; server log:\n{Path(self.log.name).read_text()[-3000:]}")
 
     def stop(self) -> None:
@@ -164,11 +166,21 @@ def test_deploy_run_and_scheduled_incremental_release(tmp_path):
         m = read_release(loc, v)
         assert m["counts"]["shards_reused"] == m["counts"]["shards"] - 1  # only the new clip's shard was written
 
-        # 4. the worker stops on SIGTERM (systemctl stop, a pod's termination): it leaves, exit status 0
-        server.wait(lambda: not [r for r in server.runs("nightly") if r["state_type"] == "RUNNING"])
+        # 4. SIGTERM (systemctl stop, a pod's termination) while the worker runs a flow: it takes no new
+        # run, lets that one finish, then leaves with exit status 0
+        server.wait(lambda: not [r for r in server.runs("nightly") if r["state_type"] in ("PENDING", "RUNNING")])
+        seen = {r["id"] for r in server.runs("release")}
+        server.run([*PREFECT, "deployment", "run", "release-from-config/release"], cwd=REPO)
+        claimed = server.wait(lambda: [r for r in server.runs("release") if r["id"] not in seen
+                                       and r["state_type"] in ("PENDING", "RUNNING")], poll=0.2)
         os.kill(worker.pid, signal.SIGTERM)
-        assert worker.wait(60) == 0
-        assert "handedit worker: stopped" in Path(server.log.name).read_text()
+        assert worker.wait(300) == 0
+        (final,) = [r for r in server.runs("release") if r["id"] == claimed[0]["id"]]
+        assert final["state_type"] == "COMPLETED", final["state"]
+        log = Path(server.log.name).read_text()
+        assert "waiting for 1 flow run(s) in progress" in log and "handedit worker: stopped" in log
+        assert not [r for r in server.runs("nightly") + server.runs("release")
+                    if r["state_type"] in ("PENDING", "RUNNING")]  # nothing new was taken while it stopped
     finally:
         server.stop()
 
@@ -180,3 +192,34 @@ def test_the_worker_names_an_unreachable_api(tmp_path):
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 1 and "Traceback" not in out.stderr
     assert "does not answer" in out.stderr and "PREFECT_API_URL" in out.stderr
+
+
+def test_a_stopping_worker_takes_no_new_run_and_waits_for_its_runs():
+    """The drain on Prefect's own limiter: while two runs are in progress no new run gets a
+    token (however much capacity the limit had), and it returns when the last one is done."""
+    import anyio
+
+    from handedit.flows.commands.worker import drain
+
+    async def scenario() -> list[str]:
+        limiter, lines = anyio.CapacityLimiter(1_000_000), []
+        runs = [object(), object()]
+        for r in runs:
+            limiter.acquire_on_behalf_of_nowait(r)
+        stopping = asyncio.ensure_future(drain(limiter, lines.append))
+        await asyncio.sleep(0.05)
+        try:
+            limiter.acquire_on_behalf_of_nowait(object())  # the worker's next poll
+            lines.append("a new run started")
+        except anyio.WouldBlock:
+            pass
+        limiter.release_on_behalf_of(runs[0])
+        await asyncio.sleep(0.05)
+        assert not stopping.done()
+        limiter.release_on_behalf_of(runs[1])
+        await asyncio.wait_for(stopping, 5)
+        return lines
+
+    lines = asyncio.run(scenario())
+    assert lines == ["handedit worker: stopping: waiting for 2 flow run(s) in progress",
+                     "handedit worker: stopping: waiting for 1 flow run(s) in progress"]

@@ -348,3 +348,20 @@ def joint_limits(urdf: yourdfpy.URDF) -> tuple[np.ndarray, np.ndarray]:
             lo.append(float(lim.lower))
             hi.append(float(lim.upper))
     return np.array(lo), np.array(hi)
+
+
+def hull_points(model: RobotModel, links: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """(link index (m,), link-frame points (m,3)): each part's convex-hull vertices, whose
+    projection bounds the part's (a segment in front of the camera projects to a segment)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    index, points = [], []
+    for p in model.parts:
+        v = np.asarray(p.vertices, np.float64)
+        try:
+            v = v[ConvexHull(v).vertices] if len(v) > 64 else v
+        except QhullError:  # flat or degenerate: every vertex
+            pass
+        index.append(np.full(len(v), links.index(p.link)))
+        points.append(v)
+    return np.concatenate(index), np.concatenate(points)

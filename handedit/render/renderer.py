@@ -21,7 +21,7 @@ import pyrender  # noqa: E402
 from handedit.camera import CV_TO_GL, Intrinsics  # noqa: E402
 from handedit.embodiments.linkage import poly_mimics, update_cfg  # noqa: E402
 from handedit.render.gl import Scene, make_offscreen  # noqa: E402
-from handedit.render.model import Rgba, RobotModel, build_model  # noqa: E402
+from handedit.render.model import Rgba, RobotModel, build_model, hull_points  # noqa: E402
 
 Z_NEAR, Z_FAR = 0.01, 20.0  # metres; 24-bit depth keeps ~µm precision at 0.5 m with these
 AMBIENT = 0.35
@@ -63,23 +63,6 @@ def _light_pose_gl(direction_cv: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, 0], T[:3, 1], T[:3, 2] = x, np.cross(z, x), z
     return T
-
-
-def _hull_points(model: RobotModel, links: list[str]) -> tuple[np.ndarray, np.ndarray]:
-    """(link index (m,), link-frame points (m,3)): each part's convex-hull vertices, whose
-    projection bounds the part's (a segment in front of the camera projects to a segment)."""
-    from scipy.spatial import ConvexHull, QhullError
-
-    index, points = [], []
-    for p in model.parts:
-        v = np.asarray(p.vertices, np.float64)
-        try:
-            v = v[ConvexHull(v).vertices] if len(v) > 64 else v
-        except QhullError:  # flat or degenerate: every vertex
-            pass
-        index.append(np.full(len(v), links.index(p.link)))
-        points.append(v)
-    return np.concatenate(index), np.concatenate(points)
 
 
 def screen_box(points: np.ndarray, camera_from_link: np.ndarray, link: np.ndarray, intr: Intrinsics,
@@ -155,7 +138,7 @@ class RobotRenderer:
         )
         self.scene.add(self._camera, pose=np.eye(4))
         self._gl = make_offscreen(self.width, self.height)
-        self._hull_link, self._hull_points = _hull_points(self.model, list(self._link_nodes))
+        self._hull_link, self._hull_points = hull_points(self.model, list(self._link_nodes))
 
     @property
     def n_faces(self) -> int:

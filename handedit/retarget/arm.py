@@ -173,6 +173,27 @@ class ArmModel:
         first = self.kin._by_name[self.arm_joint_names[0]].child
         return self.kin.fk(self.q_fixed, first)[:3, 3]
 
+    @functools.cached_property
+    def hulls(self) -> tuple[list[str], np.ndarray, np.ndarray]:
+        """The robot's visual geometry for its footprint in the image: (links, link index per
+        point, link-frame points), each mesh part's convex-hull vertices (loaded on first use)."""
+        from handedit.render.model import build_model, hull_points
+
+        model = build_model(self.assembly)
+        links = model.links
+        index, points = hull_points(model, links) if links else (np.zeros(0, int), np.zeros((0, 3)))
+        return links, index, points
+
+    def link_points(self, qa: np.ndarray, frame_from_base: np.ndarray) -> list[np.ndarray]:
+        """Per link with geometry, its hull points in ``frame_from_base``'s frame at arm joints ``qa``."""
+        links, index, points = self.hulls
+        q = self.full_q(qa)
+        out = []
+        for k, link in enumerate(links):
+            T = frame_from_base @ self.kin.fk(q, link)
+            out.append(points[index == k] @ T[:3, :3].T + T[:3, 3])
+        return out
+
     # -- numeric ----------------------------------------------------------------------
     def full_q(self, qa: np.ndarray) -> np.ndarray:
         q = self.q_fixed.copy()

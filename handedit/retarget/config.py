@@ -9,7 +9,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 class VirtualBaseConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
-    VERSION: ClassVar[int] = 3  # 3: head-torso keep-out, critical tolerance, refinement grid, plausibility ranking
+    VERSION: ClassVar[int] = 4  # 3: head-torso keep-out, critical tolerance, refinement grid, plausibility ranking;
+    # 4: the footprint is the links' visual hulls, and frames composite would drop as off-arm count against a base
 
     init_back: float = Field(0.55, description="base distance behind the wrist centre, in L_r")
     init_up: float = Field(0.10, description="base height above the wrist centre, in L_r")
@@ -41,6 +42,9 @@ class VirtualBaseConfig(BaseModel):
                                      "the wrist targets this share of L_r from the arm's first joint")
     plausibility_frames: int = Field(8, ge=0, description="frames per candidate on which the footprint and forearm measures "
                                      "are taken (0: plausibility not ranked)")
+    max_off_arm: float = Field(0.35, ge=0, le=1, description="a sampled frame whose footprint lies more than this share "
+                               "outside the human arm's corridor counts as lost, as composite's OFF_ARM screen "
+                               "(its max_off_arm) would drop it")
     body_seeds: int = Field(10, ge=0, description="first frame: random IK restarts added when no seed's arm keeps clear of "
                             "the operator's body")
     review: Literal["auto_top1", "manual"] = "auto_top1"

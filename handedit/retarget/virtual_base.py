@@ -45,7 +45,7 @@ import numpy as np
 from handedit.reasons import STATUS_DTYPE, Reason
 from handedit.retarget.arm import ArmModel, arm_model
 from handedit.retarget.config import VirtualBaseConfig
-from handedit.retarget.plausibility import BaseView, footprint_outside, forearm_angle
+from handedit.retarget.plausibility import BaseView, footprint_outside, forearm_angle, silhouette_outside
 
 GRID_LATERAL = (-0.10, 0.0, 0.10)
 GRID_FORWARD = (-0.15, 0.0, 0.15)
@@ -73,15 +73,19 @@ class CandidateScore:
     forearm_deg: float = 0.0  # mean angle between the robot's and the human forearm (0: not measured)
     stage: str = "grid"  # "grid": the paper's 27; "refine": the reach-aware second grid
     down: float = 0.0  # refine: the base this far below the grid centre, in L_r
+    off_arm_rate: float = 0.0  # share of the sampled frames whose footprint is more than max_off_arm outside the corridor
 
     def key(self) -> tuple:
-        """Lexicographic rank: critical-frame success, plausibility (footprint in tenths),
-        reachability, forearm direction (15 degree steps), then the paper's end-effector
-        error, joint margin and continuity."""
+        """Lexicographic rank: the critical frames it keeps once composite's off-arm screen
+        has dropped the frames whose robot fills the view off the human arm (critical-frame
+        success x the sampled frames' share within ``max_off_arm``), plausibility (footprint
+        in tenths), reachability, forearm direction (15 degree steps), then the paper's
+        end-effector error, joint margin and continuity."""
         off = round(self.off_corridor * 10) if np.isfinite(self.off_corridor) else 10
         fa = round(self.forearm_deg / 15) if np.isfinite(self.forearm_deg) else 12
-        return (-round(self.critical_success, 3), off, -round(self.reachability, 3), fa, round(self.ee_error_mm),
-                -round(self.joint_margin, 2), round(self.continuity, 2))
+        rate = self.off_arm_rate if np.isfinite(self.off_arm_rate) else 0.0
+        return (-round(self.critical_success * (1.0 - rate), 3), off, -round(self.reachability, 3), fa,
+                round(self.ee_error_mm), -round(self.joint_margin, 2), round(self.continuity, 2))
 
     def to_json(self) -> dict:
         d = asdict(self)
@@ -435,17 +439,24 @@ def _plausibility(score: CandidateScore, track: _Track, arm: ArmModel, cameras: 
     """Fill ``off_corridor`` and ``forearm_deg`` from up to ``plausibility_frames`` kept frames."""
     kept = np.flatnonzero((track.status == Reason.OK) & np.isfinite(view.limbs[:, 1]).all(-1))
     if not len(kept) or cfg.plausibility_frames == 0:
-        score.off_corridor = score.forearm_deg = float("nan")
+        score.off_corridor = score.forearm_deg = score.off_arm_rate = float("nan")
         return
     frames = kept[np.unique(np.linspace(0, len(kept) - 1, min(cfg.plausibility_frames, len(kept))).round().astype(int))]
     first = max(int(np.argmax(arm.moving)) - 1, 0)
+    meshes = len(arm.hulls[0]) > 0
     offs, angles = [], []
     for i in frames:
         cam_from = np.linalg.inv(cameras[i])
         pts = (cam_from[:3, :3] @ track.chains[i][:, first:] + cam_from[:3, 3:4]).T
-        offs.append(footprint_outside(pts, view.limbs[i], view, cfg.link_radius, corridor_mask=view.corridor(int(i))))
+        corridor_mask = view.corridor(int(i))
+        if meshes:  # what the image will show: every link's visual hull, the base's included
+            links = arm.link_points(track.arm_q[i], cam_from @ score.camera_from_base)
+            offs.append(silhouette_outside(links, view, corridor_mask))
+        else:
+            offs.append(footprint_outside(pts, view.limbs[i], view, cfg.link_radius, corridor_mask=corridor_mask))
         angles.append(forearm_angle(pts[1:-1], view.limbs[i]))  # from the shoulder to the wrist (not the palm centre)
     score.off_corridor = float(np.nanmean(offs)) if np.isfinite(offs).any() else float("nan")
+    score.off_arm_rate = float(np.mean(np.nan_to_num(offs, nan=0.0) > cfg.max_off_arm))
     score.forearm_deg = float(np.nanmean(angles)) if np.isfinite(angles).any() else float("nan")
 
 
