@@ -147,7 +147,6 @@ def print_roster(root) -> None:
     print(f"projected: {proj['cpu_hours']:,.0f} CPU-hours for 200M pairs")
 
 
-
 def coverage(root, clip: str, emb: str) -> tuple[float, float]:
     """(share of replaced hands' mask pixels under their robot, share left unchanged) on kept frames."""
     import numpy as np
