@@ -1,5 +1,6 @@
 """deploy/prefect.yaml on a real Prefect server: `prefect deploy`, a process worker
-(`handedit worker`), `prefect deployment run` of the release deployment, the scheduled
+(`handedit worker`), `prefect deployment run` of the release deployment (its outcome read back
+from its INFO log lines through the API), the scheduled
 incremental release picking up a clip added to its source, and the worker stopping on SIGTERM
 once the flow run it is running has finished.
 
@@ -53,8 +54,9 @@ class Server:
         self.procs: list[subprocess.Popen] = []
         self.log = open(tmp / "server.log", "w")
 
-    def spawn(self, args, **kw) -> subprocess.Popen:
-        p = subprocess.Popen(args, env=self.env, stdout=self.log, stderr=subprocess.STDOUT, start_new_session=True, **kw)
+    def spawn(self, args, env: dict | None = None, **kw) -> subprocess.Popen:
+        p = subprocess.Popen(args, env=self.env | (env or {}), stdout=self.log, stderr=subprocess.STDOUT,
+                             start_new_session=True, **kw)
         self.procs.append(p)
         return p
 
@@ -80,14 +82,23 @@ class Server:
         ids = [d["id"] for d in deps]
         return httpx.post(f"{self.api}/flow_runs/filter", json={"flow_runs": {"deployment_id": {"any_": ids}}}).json()
 
-    def wait(self, what, timeout=420, poll=2.0) -> dict:
+    def log_lines(self, flow_run: str) -> list[str]:
+        """A flow run's log messages at INFO and above, its subflows' included (the deployment's
+        entry flow calls the release flow), as the UI shows them."""
+        subflows = httpx.post(f"{self.api}/flow_runs/filter",
+                              json={"flow_runs": {"parent_flow_run_id": {"any_": [flow_run]}}}).json()
+        runs = [flow_run, *(r["id"] for r in subflows)]
+        body = {"logs": {"flow_run_id": {"any_": runs}, "level": {"ge_": 20}}, "sort": "TIMESTAMP_ASC", "limit": 200}
+        return [r["message"] for r in httpx.post(f"{self.api}/logs/filter", json=body).json()]
+
+    def wait(self, what, timeout=420, poll=2.0, why=None) -> dict:
         deadline = time.time() + timeout
         while time.time() < deadline:
             found = what()
             if found:
                 return found
             time.sleep(poll)
-        raise AssertionError(f"timed out waiting; server log:\n{Path(self.log.name).read_text()[-3000:]}")
+        raise AssertionError(why() if why else f"timed out waiting; server log:\n{Path(self.log.name).read_text()[-3000:]}")
 
     def stop(self) -> None:
         for p in reversed(self.procs):
@@ -132,7 +143,9 @@ def test_deploy_run_and_scheduled_incremental_release(tmp_path):
         server.run([sys.executable, "-m", "handedit.flows.cli", "curate", "--config", str(config), "--cluster",
                     str(cluster), "--no-progress"], timeout=600)
         server.run([*PREFECT, "--no-prompt", "deploy", "--all", "--prefect-file", str(project)], cwd=REPO)
-        worker = server.spawn([sys.executable, "-m", "handedit.flows.cli", "worker", "--pool", POOL], cwd=REPO)
+        # its flow runs log at INFO (they inherit the worker's environment), so their outcome reaches the API
+        worker = server.spawn([sys.executable, "-m", "handedit.flows.cli", "worker", "--pool", POOL], cwd=REPO,
+                              env={"PREFECT_LOGGING_LEVEL": "INFO"})
 
         # 1. `prefect deployment run` of the release deployment
         out = server.run([*PREFECT, "deployment", "run", "release-from-config/release"], cwd=REPO)
@@ -141,6 +154,12 @@ def test_deploy_run_and_scheduled_incremental_release(tmp_path):
         assert done[0]["state_type"] == "COMPLETED", done[0]["state"]
         loc = Location(releases)
         assert versions(loc) and read_release(loc, versions(loc)[0])["counts"]["pairs"] > 0
+        # the run's outcome, as an operator reads it in the UI: its INFO log lines, back through the API
+        pairs = read_release(loc, versions(loc)[0])["counts"]["pairs"]
+        published = f"published {versions(loc)[0]}: {pairs} pairs in "
+        lines = server.wait(lambda: [m for m in server.log_lines(done[0]["id"]) if m.startswith(published)], timeout=60,
+                            why=lambda: f"no '{published}...' among the run's log lines: {server.log_lines(done[0]['id'])}")
+        assert len(lines) == 1, lines
 
         # 2. the server's scheduler creates a run of the nightly deployment, and it completes
         server.wait(lambda: [r for r in server.runs("nightly") if r["auto_scheduled"] and r["state_type"] == "COMPLETED"])
