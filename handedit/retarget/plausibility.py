@@ -11,7 +11,7 @@ rendering; the third, the operator's head and torso as a keep-out volume, is
   a robot without meshes) outside the human arm's corridor in the image (the human hand,
   wrist, forearm and upper arm, as far as the source tracks them, grown by a share of the
   image width): the robot must appear where the human arm was. Capsules of 3.5 cm missed
-  what fills the view: Jaka's 12 cm upper arm beside the camera measured 4 % outside where
+  what fills the view: Jaka's thick upper arm beside the camera measured 4 % outside where
   the rendered robot was more than 35 % outside;
 * ``forearm_angle``: the angle between the robot's forearm and the human forearm (ties go
   to the candidate that follows the human arm).
