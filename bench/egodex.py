@@ -54,16 +54,26 @@ import sys  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/figure.py
 
 
-def stage_costs(root) -> dict[str, float]:
-    """ms per frame (per-clip stages) or per frame and embodiment (the others), from provenance."""
+def timings(root) -> dict[tuple[str, str | None], tuple[float, int]]:
+    """(stage, embodiment or None) -> (task seconds, frames) summed over every chunk's
+    provenance record: one pass over the records for every cost below."""
     from handedit.storage.ledger import iter_units
     from handedit.storage.provenance import read_records
 
-    secs, frames = defaultdict(float), defaultdict(int)
+    out: dict[tuple[str, str | None], tuple[float, int]] = defaultdict(lambda: (0.0, 0))
     for unit in iter_units(root):
         for rec in read_records(root, unit).values():
-            secs[unit.stage] += rec.seconds
-            frames[unit.stage] += rec.stop - rec.start
+            secs, frames = out[unit.stage, unit.embodiment]
+            out[unit.stage, unit.embodiment] = (secs + rec.seconds, frames + rec.stop - rec.start)
+    return dict(out)
+
+
+def stage_costs(times: dict) -> dict[str, float]:
+    """ms per frame (per-clip stages, each scope's frames counted) or per frame and embodiment (the others)."""
+    secs, frames = defaultdict(float), defaultdict(int)
+    for (stage, _), (s, n) in times.items():
+        secs[stage] += s
+        frames[stage] += n
     return {s: 1000 * secs[s] / frames[s] for s in secs if frames[s]}
 
 
@@ -73,37 +83,22 @@ def available_embodiments() -> list[str]:
     return [e.id for e in list_embodiments() if asset_status(e)[0]]
 
 
-def source_costs(root) -> dict[str, float]:
+def source_costs(times: dict, n_source_frames: int) -> dict[str, float]:
     """stage -> ms per source frame of the per-clip stages, every scope included (restoration
     runs once per scope: the hand scope, and the hand-arm scope when a hand-arm is curated)."""
-    from handedit.storage import Unit
-    from handedit.storage.ledger import iter_units
-    from handedit.storage.provenance import read_records
-
-    n = sum(root[Unit("ingest", c).path]["status"].shape[0] for c in root["clips"].group_keys())
     secs = defaultdict(float)
-    for unit in iter_units(root):
-        if unit.embodiment is None:
-            secs[unit.stage] += sum(rec.seconds for rec in read_records(root, unit).values())
-    return {s: 1000 * v / n for s, v in secs.items()} if n else {}
+    for (stage, emb), (s, _) in times.items():
+        if emb is None:
+            secs[stage] += s
+    return {s: 1000 * v / n_source_frames for s, v in secs.items()} if n_source_frames else {}
 
 
-def embodiment_costs(root) -> dict[str, dict[str, float]]:
-    """embodiment -> stage -> ms per frame (the per-embodiment stages, from provenance)."""
-    from handedit.storage.ledger import iter_units
-    from handedit.storage.provenance import read_records
-
-    secs, frames = defaultdict(float), defaultdict(int)
-    for unit in iter_units(root):
-        if unit.embodiment is None:
-            continue
-        for rec in read_records(root, unit).values():
-            secs[unit.embodiment, unit.stage] += rec.seconds
-            frames[unit.embodiment, unit.stage] += rec.stop - rec.start
+def embodiment_costs(times: dict) -> dict[str, dict[str, float]]:
+    """embodiment -> stage -> ms per frame (the per-embodiment stages)."""
     out: dict[str, dict[str, float]] = defaultdict(dict)
-    for (e, stage), n in frames.items():
-        if n:
-            out[e][stage] = 1000 * secs[e, stage] / n
+    for (stage, emb), (s, n) in times.items():
+        if emb is not None and n:
+            out[emb][stage] = 1000 * s / n
     return dict(out)
 
 
@@ -123,12 +118,13 @@ def roster_projection(shared_ms: float, per_embodiment: dict[str, float], tracks
     return {"track_ms": mean, "per_pair_ms": per_pair_ms, "cpu_hours": PAIRS * per_pair_ms / 1000 / 3600}
 
 
-def print_roster(root) -> None:
+def print_roster(root, times: dict) -> None:
     """Per embodiment: ms per frame of each per-embodiment stage; the projection's last line."""
     from handedit.embodiments import get_embodiment
+    from handedit.storage import Unit
 
-    shared = source_costs(root)
-    per = embodiment_costs(root)
+    shared = source_costs(times, sum(root[Unit("ingest", c).path]["status"].shape[0] for c in root["clips"].group_keys()))
+    per = embodiment_costs(times)
     stages = [s for s in ("retarget", "render", "composite", "harmonize", "qc") if any(s in v for v in per.values())]
     tracks = {e: get_embodiment(e).track for e in per}
     print("\nper source frame (shared by every embodiment), ms: " +
@@ -288,7 +284,7 @@ def main() -> None:
                   f"{u['kept'] / max(u['frames'], 1):6.2f}")
         print_arm_report(arm_report(root))
         if args.roster:
-            print_roster(root)
+            print_roster(root, timings(root))
         if args.figure:
             clips = sorted(root["clips"].group_keys())
             embs = args.embodiment or sorted({u["embodiment"] for u in units if u["embodiment"]})
@@ -327,7 +323,8 @@ def main() -> None:
     print(f"EgoDex: {len(clips)} clip(s), {n_frames} frames at {w}x{h}, embodiments {embs}, {args.workers} workers, "
           f"wall {wall:.0f} s ({n_frames * len(embs) / wall:.2f} frame-embodiments/s)")
     print("\nms per frame (task wall time; per frame and embodiment from retarget on):")
-    for stage, ms in stage_costs(root).items():
+    times = timings(root)
+    for stage, ms in stage_costs(times).items():
         print(f"  {stage:<20} {ms:8.1f}")
     print("\nkept fraction (QC OK with this hand's robot), per clip x embodiment x hand:")
     for u in run_summary(root)["units"]:
@@ -349,7 +346,7 @@ def main() -> None:
             print(f"  {c:<34} {e:<14} {under:6.2f} {left:6.3f}")
     print_arm_report(arm_report(root))
     if args.roster:
-        print_roster(root)
+        print_roster(root, times)
     if args.figure:
         figures(root, clips, embs, Path(args.figure))
 

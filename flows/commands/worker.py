@@ -66,9 +66,13 @@ async def serve(pool: str, name: str | None = None, limit: int | None = None, gr
 
     async def stopper() -> None:
         await stop.wait()
-        if worker._limiter is not None:  # started: its runs are counted there
+        try:
+            limiter = worker.limiter  # its runs are counted there once it has started
+        except RuntimeError:  # not started yet: nothing in progress
+            limiter = None
+        if limiter is not None:
             try:
-                await asyncio.wait_for(drain(worker.limiter, say), grace)
+                await asyncio.wait_for(drain(limiter, say), grace)
             except asyncio.TimeoutError:
                 say(f"handedit worker: {grace:.0f} s passed with flow runs still in progress: stopping them")
         task.cancel()  # cancelled in the task that entered the worker's scopes

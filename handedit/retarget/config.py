@@ -6,6 +6,8 @@ from typing import ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from handedit.vision.arm import MAX_OFF_ARM
+
 
 class VirtualBaseConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -42,7 +44,7 @@ class VirtualBaseConfig(BaseModel):
                                      "the wrist targets this share of L_r from the arm's first joint")
     plausibility_frames: int = Field(8, ge=0, description="frames per candidate on which the footprint and forearm measures "
                                      "are taken (0: plausibility not ranked)")
-    max_off_arm: float = Field(0.35, ge=0, le=1, description="a sampled frame whose footprint lies more than this share "
+    max_off_arm: float = Field(MAX_OFF_ARM, ge=0, le=1, description="a sampled frame whose footprint lies more than this share "
                                "outside the human arm's corridor counts as lost, as composite's OFF_ARM screen "
                                "(its max_off_arm) would drop it")
     body_seeds: int = Field(10, ge=0, description="first frame: random IK restarts added when no seed's arm keeps clear of "

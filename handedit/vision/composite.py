@@ -32,6 +32,7 @@ from handedit.images import pixels
 from handedit.keypoints import N_JOINTS, PARENT, WRIST
 from handedit.reasons import STATUS_DTYPE, Reason, per_frame
 from handedit.metrics.similarity import bbox
+from handedit.vision.arm import CORRIDOR_FRAC, MAX_OFF_ARM
 from handedit.vision.masks import disk, grow
 from handedit.vision.occluder import OccluderConfig
 from handedit.vision.restore_background import restored_residue
@@ -53,9 +54,9 @@ class CompositeConfig(pydantic.BaseModel):
     restored_residue_threshold: float = pydantic.Field(
         0.25, ge=0, le=1, description="skin-coloured share of the restored pixels left visible (above their surroundings' "
         "share) -> RESIDUE (restoration's check, judged where no robot covers the hole)")
-    max_off_arm: float = pydantic.Field(0.35, ge=0, le=1, description="hand-arm: share of a robot's pixels outside the "
+    max_off_arm: float = pydantic.Field(MAX_OFF_ARM, ge=0, le=1, description="hand-arm: share of a robot's pixels outside the "
                                         "human arm's corridor (handedit.vision.arm) above which -> OFF_ARM")
-    arm_corridor_frac: float = pydantic.Field(0.05, ge=0, description="the corridor grows by this share of the image width")
+    arm_corridor_frac: float = pydantic.Field(CORRIDOR_FRAC, ge=0, description="the corridor grows by this share of the image width")
     image_occluder: OccluderConfig | None = pydantic.Field(None, description=(
         "a source without an object mesh or mask: what hid the human fingers (handedit.vision.occluder) is drawn in "
         "front of the robot. Off by default: on the synthetic grasps (true masks) it finds the held object, but on the "
