@@ -36,6 +36,15 @@ if [ -n "$extras" ] && ! command -v chromium >/dev/null 2>&1; then
     || echo "warning: could not install chromium; tests/test_release.py's browser test will fail until it is installed"
 fi
 
+# the live deployment test runs its Prefect server on PostgreSQL (deploy/prefect-db.sh)
+if [ -n "$extras" ] && ! ls /usr/lib/postgresql/*/bin/pg_ctl >/dev/null 2>&1 && ! command -v pg_ctl >/dev/null 2>&1; then
+  SUDO=""
+  [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+  echo "installing Debian package: postgresql (for the live deployment test's Prefect server)"
+  { $SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends postgresql >/dev/null; } \
+    || echo "warning: could not install postgresql; tests/test_deployments_live.py will fail until it is installed"
+fi
+
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q -e ".${extras}"

@@ -296,7 +296,7 @@ def _watch_workers(address: str, timeout_s: float, stop: threading.Event, lost: 
 @flow(name="curate")
 def curate(config: CurateConfig, progress: bool = False) -> dict:
     """Curate ``config`` (clips and source trees) x ``config.embodiments`` into ``config.out``."""
-    from prefect_dask import DaskTaskRunner
+    from handedit.flows.runner import task_runner
 
     logger = get_run_logger()
     loc = Location(config.out)
@@ -338,7 +338,7 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
         stop, lost = threading.Event(), []
         watchdog = threading.Thread(target=_watch_workers, args=(address, config.cluster.worker_timeout, stop, lost), daemon=True)
         watchdog.start()
-        shard_flow = curate_shard.with_options(task_runner=DaskTaskRunner(address=address))
+        shard_flow = curate_shard.with_options(task_runner=task_runner(address))
         pool = ThreadPoolExecutor(config.shards_in_flight)
         in_flight: dict = {}
 

@@ -175,12 +175,11 @@ def summarise(rows: list[dict], feats: dict, editor: str, skipped: list[str]) ->
 
 
 def run_evaluate(cfg: EvaluateConfig) -> dict:
-    from prefect_dask import DaskTaskRunner
-
     from handedit.flows.api import run_api
+    from handedit.flows.runner import task_runner
 
     with run_api(), cfg.cluster.connect() as address:
-        return evaluate.with_options(task_runner=DaskTaskRunner(address=address))(cfg)
+        return evaluate.with_options(task_runner=task_runner(address))(cfg)
 
 
 __all__ = ["EvaluateConfig", "evaluate", "run_evaluate", "summarise"]

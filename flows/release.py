@@ -145,9 +145,8 @@ def pending_review(records: dict) -> set[str]:
 
 @flow(name="release")
 def release(cfg: ReleaseConfig) -> dict:
-    from prefect_dask import DaskTaskRunner
-
     from handedit.flows.curate import code_version
+    from handedit.flows.runner import task_runner
     from handedit.tasks.release import ShardJob
 
     logger = get_run_logger()
@@ -180,7 +179,7 @@ def release(cfg: ReleaseConfig) -> dict:
     if jobs:
         with cfg.cluster.connect() as address:
             links["Dask dashboard"] = dashboard_link(address) if cfg.cluster.address else None
-            for res in write_shards.with_options(task_runner=DaskTaskRunner(address=address))(jobs):
+            for res in write_shards.with_options(task_runner=task_runner(address))(jobs):
                 shards[res["key"]] = {**_shard_entry(res), "reused": False}
     used = list(dict.fromkeys(k for _, k in pairs))
     table = pd.DataFrame([{**p.meta(), "id": p.id, "sides": ",".join(p.sides), "shard": k} for p, k in pairs],

@@ -1,28 +1,34 @@
-"""deploy/prefect.yaml on a real Prefect server: `prefect deploy`, a process worker
-(`handedit worker`), `prefect deployment run` of the release deployment (its outcome read back
-from its INFO log lines through the API), the scheduled
+"""deploy/prefect.yaml on a real Prefect server backed by PostgreSQL: `prefect deploy`, a
+process worker (`handedit worker`), `prefect deployment run` of the release deployment (its
+outcome read back from its INFO log lines and its artifact through the API), the scheduled
 incremental release picking up a clip added to its source, and the worker stopping on SIGTERM
-once the flow run it is running has finished.
+once the flow run it is running has finished. A curate run's artifacts are opened in the
+server's UI in headless Chromium (screenshots: ``tests/_browser.py``).
 
-The server, the work pool, the worker and every flow run are real processes on
-127.0.0.1 (not the test harness); the project's deployments are used as written, with
-their parameters pointed at this test's folders and the nightly schedule shortened.
+The database (``deploy/prefect-db.sh``, Debian's postgresql), the server, the work pool, the
+worker and every flow run are real processes on 127.0.0.1 (not the test harness); the
+project's deployments are used as written, with their parameters pointed at this test's
+folders and the nightly schedule shortened.
 """
 
 from __future__ import annotations
 
 import asyncio
 import os
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
 import httpx
 import yaml
+
+from _browser import Tab
 
 from handedit.storage import Location
 from handedit.storage.releases import read_pairs, read_release, versions
@@ -42,13 +48,44 @@ def _clip(i: int) -> dict:
     return {"kind": "synthetic", "clip_id": f"synthetic-{i:04d}", "seed": i, "n_frames": 8, "width": 96, "height": 72}
 
 
+class Postgres:
+    """A PostgreSQL cluster for the Prefect server, started as the README says:
+    ``bash deploy/prefect-db.sh start DIR PORT`` (as root the server runs as the postgres user,
+    so DIR lies in a folder it can enter, not under pytest's closed tmp folders)."""
+
+    def __init__(self):
+        self.base = Path(tempfile.mkdtemp(prefix="handedit-prefect-db-"))
+        self.base.chmod(0o755)
+        self.dir = self.base / "db"
+        out = subprocess.run(["bash", str(REPO / "deploy" / "prefect-db.sh"), "start", str(self.dir), str(_port())],
+                             capture_output=True, text=True, timeout=180)
+        assert out.returncode == 0, out.stderr
+        self.url = out.stdout.strip().removeprefix("export PREFECT_API_DATABASE_CONNECTION_URL=")
+        assert self.url.startswith("postgresql+asyncpg://prefect:"), out.stdout
+
+    def count(self, table: str) -> int:
+        """Rows of one of Prefect's tables, read with psql (not through Prefect)."""
+        port, password = (self.dir / "port").read_text().strip(), (self.dir / "password").read_text().strip()
+        out = subprocess.run(["psql", "-h", "127.0.0.1", "-p", port, "-U", "prefect", "-d", "prefect", "-tAc",
+                              f"select count(*) from {table}"], capture_output=True, text=True, timeout=60,
+                             env=os.environ | {"PGPASSWORD": password})
+        assert out.returncode == 0, out.stderr
+        return int(out.stdout)
+
+    def stop(self) -> None:
+        subprocess.run(["bash", str(REPO / "deploy" / "prefect-db.sh"), "stop", str(self.dir)], capture_output=True, timeout=120)
+        shutil.rmtree(self.base, ignore_errors=True)
+
+
 class Server:
-    def __init__(self, tmp: Path):
+    def __init__(self, tmp: Path, database: str):
         self.port = _port()
-        self.api = f"http://127.0.0.1:{self.port}/api"
+        self.ui = f"http://127.0.0.1:{self.port}"
+        self.api = f"{self.ui}/api"
         self.env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")} | {
             "PREFECT_HOME": str(tmp / "prefect-home"), "PREFECT_API_URL": self.api,
-            "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "PREFECT_UI_ENABLED": "false",
+            "PREFECT_API_DATABASE_CONNECTION_URL": database,
+            "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "PREFECT_UI_ENABLED": "true",
             "PREFECT_SERVER_SERVICES_SCHEDULER_LOOP_SECONDS": "5", "PREFECT_WORKER_QUERY_SECONDS": "2",
             "PREFECT_LOGGING_LEVEL": "WARNING", "HANDEDIT_REPO": str(REPO), "PYOPENGL_PLATFORM": "egl"}
         self.procs: list[subprocess.Popen] = []
@@ -82,13 +119,21 @@ class Server:
         ids = [d["id"] for d in deps]
         return httpx.post(f"{self.api}/flow_runs/filter", json={"flow_runs": {"deployment_id": {"any_": ids}}}).json()
 
+    def with_subflows(self, flow_run: str) -> list[str]:
+        subflows = httpx.post(f"{self.api}/flow_runs/filter",
+                              json={"flow_runs": {"parent_flow_run_id": {"any_": [flow_run]}}}).json()
+        return [flow_run, *(r["id"] for r in subflows)]
+
+    def artifacts(self, flow_run: str) -> dict[str, dict]:
+        """A flow run's artifacts (its subflows' included) by key, through the API."""
+        body = {"artifacts": {"flow_run_id": {"any_": self.with_subflows(flow_run)}}}
+        return {a["key"]: a for a in httpx.post(f"{self.api}/artifacts/filter", json=body).json() if a["key"]}
+
     def log_lines(self, flow_run: str) -> list[str]:
         """A flow run's log messages at INFO and above, its subflows' included (the deployment's
         entry flow calls the release flow), as the UI shows them."""
-        subflows = httpx.post(f"{self.api}/flow_runs/filter",
-                              json={"flow_runs": {"parent_flow_run_id": {"any_": [flow_run]}}}).json()
-        runs = [flow_run, *(r["id"] for r in subflows)]
-        body = {"logs": {"flow_run_id": {"any_": runs}, "level": {"ge_": 20}}, "sort": "TIMESTAMP_ASC", "limit": 200}
+        body = {"logs": {"flow_run_id": {"any_": self.with_subflows(flow_run)}, "level": {"ge_": 20}},
+                "sort": "TIMESTAMP_ASC", "limit": 200}
         return [r["message"] for r in httpx.post(f"{self.api}/logs/filter", json=body).json()]
 
     def wait(self, what, timeout=420, poll=2.0, why=None) -> dict:
@@ -135,13 +180,28 @@ def test_deploy_run_and_scheduled_incremental_release(tmp_path):
     project = tmp_path / "prefect.yaml"
     project.write_text(yaml.safe_dump(spec, sort_keys=False))
 
-    server = Server(tmp_path)
+    db = Postgres()
+    server = Server(tmp_path, db.url)
     try:
         server.start()
         server.run([*PREFECT, "work-pool", "create", POOL, "--type", "process"])
         server.run([*PREFECT, "work-pool", "set-concurrency-limit", POOL, "1"])
         server.run([sys.executable, "-m", "handedit.flows.cli", "curate", "--config", str(config), "--cluster",
                     str(cluster), "--no-progress"], timeout=600)
+        # 0. the curate run's outcome in the UI: its artifacts, drawn by the server's own pages
+        (curated,) = httpx.post(f"{server.api}/flow_runs/filter", json={"flows": {"name": {"any_": ["curate"]}}}).json()
+        arts = server.artifacts(curated["id"])
+        assert {"curate-frames", "curate-outcome", "curate-progress"} <= set(arts), sorted(arts)
+        with Tab((1280, 640)) as tab:
+            tab.open(f"{server.ui}/artifacts/artifact/{arts['curate-outcome']['id']}", 4.0)
+            text = tab.text()
+            assert str(run) in text and "kept" in text, text[:2000]
+            tab.png(tmp_path / "prefect_curate_outcome.png")
+            link = next(line.split(": ", 1)[1].split()[0] for line in text.splitlines() if line.startswith("Prefect run: "))
+            assert curated["name"] in tab.open(link, 4.0).text()  # the run's own link opens its page
+            tab.open(f"{server.ui}/artifacts/artifact/{arts['curate-frames']['id']}", 4.0)
+            assert "status" in tab.text() and "retarget" in tab.text(), tab.text()[:2000]
+            tab.png(tmp_path / "prefect_curate_frames.png")
         server.run([*PREFECT, "--no-prompt", "deploy", "--all", "--prefect-file", str(project)], cwd=REPO)
         # its flow runs log at INFO (they inherit the worker's environment), so their outcome reaches the API
         worker = server.spawn([sys.executable, "-m", "handedit.flows.cli", "worker", "--pool", POOL], cwd=REPO,
@@ -160,6 +220,8 @@ def test_deploy_run_and_scheduled_incremental_release(tmp_path):
         lines = server.wait(lambda: [m for m in server.log_lines(done[0]["id"]) if m.startswith(published)], timeout=60,
                             why=lambda: f"no '{published}...' among the run's log lines: {server.log_lines(done[0]['id'])}")
         assert len(lines) == 1, lines
+        release_art = server.artifacts(done[0]["id"]).get("release")
+        assert release_art and f"# release {versions(loc)[0]}" in release_art["data"], release_art
 
         # 2. the server's scheduler creates a run of the nightly deployment, and it completes
         server.wait(lambda: [r for r in server.runs("nightly") if r["auto_scheduled"] and r["state_type"] == "COMPLETED"])
@@ -200,8 +262,12 @@ def test_deploy_run_and_scheduled_incremental_release(tmp_path):
         assert "waiting for 1 flow run(s) in progress" in log and "handedit worker: stopped" in log
         assert not [r for r in server.runs("nightly") + server.runs("release")
                     if r["state_type"] in ("PENDING", "RUNNING")]  # nothing new was taken while it stopped
+        # every run above is a row of the PostgreSQL database, not of a SQLite file
+        assert db.count("flow_run") >= len(server.runs("release")) + len(server.runs("nightly")) + 1
+        assert not list((tmp_path / "prefect-home").glob("*.db"))
     finally:
         server.stop()
+        db.stop()
 
 
 def test_the_worker_names_an_unreachable_api(tmp_path):

@@ -147,25 +147,19 @@ def test_bench_build_from_a_release_equals_the_store_build(released, capsys):
 def test_release_qa_page_renders_in_headless_chromium(released):
     """The page in a real browser: every image decodes, the counts and the breakdown table are there."""
     import re
-    import shutil as sh
-    import subprocess
 
-    browser = sh.which("chromium") or sh.which("chromium-browser")
-    assert browser, "chromium is not installed: `bash deploy/setup.sh --test` installs it (Debian package chromium)"
+    from _browser import dom, screenshot
+
     page = released["rel"] / "v0002" / "qa.html"
     assert main(["dashboard", "--release", str(released["rel"] / "v0002")]) == 0 and page.is_file()
-    flags = [browser, "--headless=new", "--no-sandbox", "--disable-gpu", "--virtual-time-budget=10000",
-             "--window-size=1280,2400"]
-    dom = subprocess.run([*flags, "--dump-dom", page.as_uri()], capture_output=True, text=True, timeout=120).stdout
-    check = re.search(r'id="qa-check" data-images="(\d+)" data-broken="(\d+)"', dom)
-    assert check, dom[-2000:]
+    text = dom(page.as_uri())
+    check = re.search(r'id="qa-check" data-images="(\d+)" data-broken="(\d+)"', text)
+    assert check, text[-2000:]
     n_images, broken = map(int, check.groups())
     m = read_release(Location(released["rel"]), "v0002")
     assert broken == 0 and n_images >= 3
-    assert f'data-pairs="{m["counts"]["pairs"]}"' in dom and "Rejections by primary cause" in dom
-    shot = released["tmp"] / "qa.png"
-    subprocess.run([*flags, f"--screenshot={shot}", page.as_uri()], capture_output=True, timeout=120)
-    assert shot.is_file() and shot.stat().st_size > 10_000
+    assert f'data-pairs="{m["counts"]["pairs"]}"' in text and "Rejections by primary cause" in text
+    screenshot(page.as_uri(), released["tmp"] / "qa_release.png", wait_s=2.0, size=(1280, 2400))
 
 
 def test_datasheet_families_follow_the_pipeline_order():
@@ -195,10 +189,9 @@ def test_a_hostile_manifest_renders_inert_in_headless_chromium(released):
     """Manifest fields and links are data: markup in them is shown as text, scripts never run."""
     import json as js
     import shutil as sh
-    import subprocess
 
-    browser = sh.which("chromium") or sh.which("chromium-browser")
-    assert browser, "chromium is not installed: `bash deploy/setup.sh --test` installs it (Debian package chromium)"
+    from _browser import dom
+
     rel = released["tmp"] / "hostile"
     sh.copytree(released["rel"], rel)
     path = rel / "v0001" / "manifest.json"
@@ -214,10 +207,9 @@ def test_a_hostile_manifest_renders_inert_in_headless_chromium(released):
     text = page.read_text()
     assert 'href="javascript' not in text and 'href="http://127.0.0.1:8787/status"' in text
     assert "<script>document" not in text
-    flags = [browser, "--headless=new", "--no-sandbox", "--disable-gpu", "--virtual-time-budget=5000"]
-    dom = subprocess.run([*flags, "--dump-dom", page.as_uri()], capture_output=True, text=True, timeout=120).stdout
-    assert "<title>handedit release v0001</title>" in dom and "pwned" not in dom.split("</title>")[0]
-    assert "<img src=\"x\"" not in dom and "&lt;img src=x" in dom  # shown, not made
+    shown = dom(page.as_uri(), budget_ms=5000)
+    assert "<title>handedit release v0001</title>" in shown and "pwned" not in shown.split("</title>")[0]
+    assert "<img src=\"x\"" not in shown and "&lt;img src=x" in shown  # shown, not made
 
 
 def test_clip_ids_that_differ_only_by_a_dot_keep_distinct_sample_keys():
