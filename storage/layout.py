@@ -96,9 +96,9 @@ def clip_path(clip: str) -> str:
 # Review previews of a hand-arm sequence's top virtual-base candidates: a sequence-level
 # group per hand inside its retarget unit (not per frame), written by the one retarget task.
 #   <retarget unit>/previews/<side>/ego, third   (K, P, H, W, 4) uint8   K candidates x P frames
-#   <retarget unit>/previews/<side>/candidates   (K,) int16 (-1: none)   frames (P,) int32
+#   <retarget unit>/previews/<side>/candidates   (K,) int16 (-1: none)   frames (P,) int32 (-1: none)
+# P: 3 stills, or the replay's frames under ``review: manual`` (VirtualBaseConfig.preview_frames)
 PREVIEW_CANDIDATES = 3
-PREVIEW_FRAMES = 3
 
 
 def preview_path(unit: Unit, side: str) -> str:

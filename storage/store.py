@@ -24,7 +24,7 @@ import zarr
 from zarr.codecs import BloscCodec, BloscShuffle
 
 from handedit.storage import handoff
-from handedit.storage.layout import (PREVIEW_CANDIDATES, PREVIEW_FRAMES, SCHEMA_VERSION, ArraySpec, Unit, arrays_for, stage_arrays,
+from handedit.storage.layout import (PREVIEW_CANDIDATES, SCHEMA_VERSION, ArraySpec, Unit, arrays_for, stage_arrays,
                             preview_path)
 
 # Masks and label maps compress best bit-shuffled; 8-bit colour frames do not (their bits
@@ -244,10 +244,11 @@ def _create_array(group: zarr.Group, spec: ArraySpec, shape: tuple[int, ...], f:
         )
 
 
-def create_previews(root: zarr.Group, unit: Unit, height: int, width: int, side: str) -> None:
-    """The unit's owner: the (empty) review-preview group of one hand of a hand-arm retarget unit."""
+def create_previews(root: zarr.Group, unit: Unit, height: int, width: int, side: str, frames: int) -> None:
+    """The unit's owner: the (empty) review-preview group of one hand of a hand-arm retarget unit,
+    for ``frames`` frames per candidate."""
     group = root.require_group(preview_path(unit, side))
-    k, p = PREVIEW_CANDIDATES, PREVIEW_FRAMES
+    k, p = PREVIEW_CANDIDATES, frames
     for name in ("ego", "third"):
         if name not in group or group[name].shape != (k, p, height, width, 4):
             group.create_array(name, shape=(k, p, height, width, 4), dtype="uint8", chunks=(1, 1, height, width, 4),

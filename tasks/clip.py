@@ -362,8 +362,9 @@ def create_embodiment_units(root, config, plan, emb: dict) -> None:
         extra = {**hands, "stage": stage, **({"joint_names": emb["joint_names"]} if stage == "retarget" else {})}
         create_unit(root, Unit(stage, plan.clip, embodiment=emb["id"]), plan.n_frames, sizes, f, attrs=extra)
     if emb["scope"] == "hand_arm":
+        n = min(config.stage_config("retarget").virtual_base.preview_frames(), plan.n_frames)
         for side in plan.hands:
-            create_previews(root, Unit("retarget", plan.clip, embodiment=emb["id"]), plan.height, plan.width, side)
+            create_previews(root, Unit("retarget", plan.clip, embodiment=emb["id"]), plan.height, plan.width, side, n)
 
 
 # ----------------------------------------------------------------------------- tasks

@@ -95,8 +95,9 @@ def _hand_arm_body(inp: Inputs, job: ChunkJob) -> StageOutput:
     world = plan.world
     wfc = arrays["world_from_camera"] if world else None
     intr = Intrinsics(**plan.intrinsics)
+    config = RetargetConfig(**job.params)
     res = retarget_hand_arm_sides(arrays["reg_keypoints"], arrays["reg_keypoints_valid"], arrays["ready"], sides,
-                                  job.unit.embodiment, RetargetConfig(**job.params), wfc, world,
+                                  job.unit.embodiment, config, wfc, world,
                                   arrays.get("reg_arm_keypoints"), arrays.get("arm_valid"), choices,
                                   object_mesh=_object_mesh(job), object_pose=arrays.get("object_pose"), intr=intr)
     previews = {}
@@ -106,7 +107,8 @@ def _hand_arm_body(inp: Inputs, job: ChunkJob) -> StageOutput:
             continue
         cands, frames, ego, third = top_previews(arm_res, preview_intrinsics(intr, side),
                                                  world_from_camera=None if wfc is None else _side_world(wfc, side),
-                                                 up=None if world is None else np.asarray(world["up"], float))
+                                                 up=None if world is None else np.asarray(world["up"], float),
+                                                 frames=config.virtual_base.preview_frames())
         if side == "left":  # rendered in the mirrored view: flip back
             ego, third = ego[..., ::-1, :], third[..., ::-1, :]
         previews[side] = inp.write_previews(cands, frames, ego, third, side=side)

@@ -112,6 +112,7 @@ def test_review_choose_rerun_and_previews(run, dask_cluster, tmp_path, capsys):
     assert main(["review", out_dir, "--clip", clip, "--embodiment", EMB, "--previews", str(tmp_path / "pv")]) == 0
     pngs = sorted((tmp_path / "pv").glob("*.png"))
     assert len(pngs) == 3 * 3 * 2  # top-3 x first/middle/last frame x (egocentric, third-person)
+    assert [_video(v) for v in sorted((tmp_path / "pv").glob("*.mp4"))] == [(3, H, 2 * W)] * 3  # a replay per candidate
     assert main(["review", out_dir, "--clip", clip, "--embodiment", EMB, "--choose", str(k)]) == 0
     again = run_curate(config)
     assert again["stages"]["retarget"]["ran"] == 1 and again["stages"]["ingest"]["ran"] == 0
@@ -152,3 +153,45 @@ def test_unreviewed_bases_are_held_back_from_releases_and_the_benchmark(run, mon
     monkeypatch.setattr(provenance, "read_records", lambda r, u: pending if u.stage == "retarget" else read_records(r, u))
     items = StoreItems(root, [clip])
     assert not items.kept(clip, EMB).any() and items.held_back_unreviewed == int(free.sum()) == len(pairs)
+
+
+def _video(path) -> tuple[int, int, int]:
+    import cv2
+
+    cap, n, shape = cv2.VideoCapture(str(path)), 0, None
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            return n, *shape[:2]
+        n, shape = n + 1, frame.shape
+
+
+def test_preview_frames_span_the_sequence():
+    from handedit.retarget.preview import preview_frames
+
+    assert preview_frames(16) == [0, 8, 15] and preview_frames(94) == [0, 47, 93]  # first, middle, last
+    replay = preview_frames(96, 24)
+    assert len(replay) == 24 and replay[0] == 0 and replay[-1] == 95 and np.all(np.diff(replay) >= 4)
+    assert preview_frames(10, 24) == list(range(10)) and preview_frames(1, 24) == [0]
+
+
+def test_manual_review_stores_a_replay_of_each_top_candidate(run, tmp_path, capsys):
+    """``review: manual``: where a person will choose the base, each top candidate is stored as a
+    short replay (``replay_frames`` frames over the sequence), and ``handedit review --previews``
+    writes it as a video: egocentric over the source beside the third-person view."""
+    from handedit.flows.cli import main
+    from handedit.retarget.config import RetargetConfig, VirtualBaseConfig
+    from handedit.storage.store import read_previews
+
+    config, _, clip = run
+    manual = config.model_copy(update={"retarget": RetargetConfig(virtual_base=VirtualBaseConfig(review="manual",
+                                                                                                 replay_frames=6))})
+    assert run_curate(manual)["stages"]["retarget"]["ran"] == 1
+    pv = read_previews(open_store(config.out), Unit("retarget", clip, embodiment=EMB), "right")
+    assert list(pv["frames"]) == [0, 3, 6, 9, 12, 15] and pv["ego"].shape[1] == 6
+    assert (pv["ego"][..., 3] > 0).any(axis=(2, 3)).all() and (pv["third"][..., 3] > 0).any(axis=(2, 3)).all()
+    assert main(["review", str(config.out), "--clip", clip, "--embodiment", EMB, "--previews", str(tmp_path / "pv")]) == 0
+    assert "6 frames (replay)" in capsys.readouterr().out
+    videos = sorted((tmp_path / "pv").glob("*.mp4"))
+    assert len(videos) == len(pv["candidates"]) and all(_video(v) == (6, H, 2 * W) for v in videos)
+    assert len(list((tmp_path / "pv").glob("*.png"))) == len(pv["candidates"]) * 3 * 2  # stills: first, middle, last

@@ -2,7 +2,7 @@
 
     handedit review DIR                                   every hand-arm sequence: top-3, choice, policy
     handedit review DIR --clip C --embodiment E           its 27 candidates' scores
-    handedit review DIR --clip C --embodiment E --previews OUT   egocentric + third-person PNGs of the top-3
+    handedit review DIR --clip C --embodiment E --previews OUT   the top-3's replay videos and stills
     handedit review DIR --clip C --embodiment E --choose K       pick top-3 candidate K
     handedit review DIR --clip C --embodiment E --drop           no plausible candidate: drop the sequence
 
@@ -117,10 +117,13 @@ def cmd_review(args: argparse.Namespace) -> int:
 
 
 def _write_previews(root, args, found) -> int:
-    """PNGs of the stored previews: egocentric renders over the source frame, third-person as rendered."""
+    """For each top candidate, its replay video (``*_cand<K>.mp4``: the egocentric render over the
+    source frame beside the third-person render, every stored frame) and PNG stills of the first,
+    middle and last stored frame (egocentric over the source; third-person as rendered)."""
     import cv2
     import numpy as np
 
+    from handedit.retarget.preview import preview_frames, replay, write_video
     from handedit.storage import Unit
     from handedit.storage.store import read_array, read_previews
 
@@ -132,13 +135,18 @@ def _write_previews(root, args, found) -> int:
     out = Path(args.previews)
     out.mkdir(parents=True, exist_ok=True)
     frames_rgb = root[Unit("ingest", c).path]["frames"]
+    source = np.stack([read_array(frames_rgb, f) for f in pv["frames"]])
+    stills = preview_frames(len(pv["frames"]))  # positions among the stored frames
     for i, cand in enumerate(pv["candidates"]):
-        for j, f in enumerate(pv["frames"]):
-            rgba = pv["ego"][i, j].astype(float) / 255
-            over = (read_array(frames_rgb, f) * (1 - rgba[..., 3:]) + 255 * rgba[..., :3] * rgba[..., 3:]).astype(np.uint8)
-            cv2.imwrite(str(out / f"{c}_{e}_{sd}_cand{cand}_ego_f{f:05d}.png"), cv2.cvtColor(over, cv2.COLOR_RGB2BGR))
+        views = replay(source, pv["ego"][i], pv["third"][i])
+        write_video(out / f"{c}_{e}_{sd}_cand{cand}.mp4", views, args.fps)
+        w = source.shape[2]
+        for j in stills:
+            f = pv["frames"][j]
+            cv2.imwrite(str(out / f"{c}_{e}_{sd}_cand{cand}_ego_f{f:05d}.png"), cv2.cvtColor(views[j, :, :w], cv2.COLOR_RGB2BGR))
             cv2.imwrite(str(out / f"{c}_{e}_{sd}_cand{cand}_third_f{f:05d}.png"), cv2.cvtColor(pv["third"][i, j], cv2.COLOR_RGBA2BGRA))
-    print(f"previews of candidates {list(pv['candidates'])} -> {out}")
+    kind = "replay" if len(pv["frames"]) > 3 else "first, middle and last frame (`review: manual` stores a replay)"
+    print(f"previews of candidates {[int(k) for k in pv['candidates']]}, {len(pv['frames'])} frames ({kind}) -> {out}")
     return 0
 
 
@@ -151,5 +159,7 @@ def register(subparsers) -> None:
     g = p.add_mutually_exclusive_group()
     g.add_argument("--choose", type=int, help="candidate index among the top-3")
     g.add_argument("--drop", action="store_true", help="no plausible candidate: exclude the sequence")
-    p.add_argument("--previews", help="folder for egocentric and third-person preview PNGs of the top-3")
+    p.add_argument("--previews", help="folder for the top-3's replay videos (egocentric over the source | third-person) "
+                   "and PNG stills")
+    p.add_argument("--fps", type=float, default=6.0, help="frame rate of the replay videos (default 6)")
     p.set_defaults(func=cmd_review)

@@ -51,6 +51,12 @@ class VirtualBaseConfig(BaseModel):
                             "the operator's body")
     review: Literal["auto_top1", "manual"] = "auto_top1"
     top_k: int = Field(3, ge=1)
+    replay_frames: int = Field(24, ge=3, description="review: manual: frames of each top candidate's replay preview, evenly "
+                               "spaced over the sequence (auto_top1 keeps stills of the first, middle and last frame)")
+
+    def preview_frames(self) -> int:
+        """Frames stored per top candidate for review: a short replay where a person will choose."""
+        return self.replay_frames if self.review == "manual" else 3
 
 
 class RetargetConfig(BaseModel):

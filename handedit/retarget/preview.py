@@ -54,18 +54,52 @@ def render_previews(res: HandArmResult, intr: Intrinsics, candidates: list[int] 
     return out
 
 
+def preview_frames(n: int, count: int = 3) -> list[int]:
+    """``count`` frames evenly spaced over a sequence of ``n``, first and last included (3: the
+    first, middle and last; more: a replay)."""
+    if n <= 1 or count <= 1:
+        return [0]
+    return sorted({int(np.floor(i * (n - 1) / (count - 1) + 0.5)) for i in range(count)})
+
+
 def top_previews(res: HandArmResult, intr: Intrinsics, world_from_camera: np.ndarray | None = None,
-                 top: int = 3, up: np.ndarray | None = None) -> tuple[list[int], list[int], np.ndarray, np.ndarray]:
-    """What an operator reviews: the top candidates at the first, middle and last frame.
+                 top: int = 3, up: np.ndarray | None = None, frames: int = 3) -> tuple[list[int], list[int], np.ndarray, np.ndarray]:
+    """What an operator reviews: the top candidates at ``frames`` frames of the sequence (the
+    first, middle and last; under ``review: manual`` a replay).
 
     Returns (candidates, frames, ego (K,P,H,W,4), third (K,P,H,W,4)); K = 0 when no
     candidate survived the search.
     """
-    n = len(res.qpos)
-    frames = sorted({0, n // 2, n - 1})
+    frames = preview_frames(len(res.qpos), frames)
     cands = res.virtual_base.ranking[:top]
     shape = (0, len(frames), intr.height, intr.width, 4)
     if not cands:
         return [], frames, np.zeros(shape, np.uint8), np.zeros(shape, np.uint8)
     views = render_previews(res, intr, candidates=cands, frames=frames, world_from_camera=world_from_camera, up=up)
     return cands, frames, np.stack([views[c]["ego"] for c in cands]), np.stack([views[c]["third"] for c in cands])
+
+
+def replay(source: np.ndarray, ego: np.ndarray, third: np.ndarray, grey: int = 96) -> np.ndarray:
+    """One candidate's review frames, (P,H,2W,3) uint8: its egocentric render over the source
+    frame (what the pseudo-GT will show) beside its third-person render on grey (where the base
+    stands), for the paper's replay videos."""
+    a = ego[..., 3:].astype(np.float32) / 255
+    left = source.astype(np.float32) * (1 - a) + ego[..., :3].astype(np.float32) * a
+    b = third[..., 3:].astype(np.float32) / 255
+    right = grey * (1 - b) + third[..., :3].astype(np.float32) * b
+    return np.concatenate([left, right], axis=2).round().astype(np.uint8)
+
+
+def write_video(path, frames: np.ndarray, fps: float) -> None:
+    """(P,H,W,3) RGB uint8 frames as an MP4 (OpenCV's own MPEG-4 encoder: no system FFmpeg)."""
+    import cv2
+
+    h, w = frames.shape[1:3]
+    out = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
+    if not out.isOpened():
+        raise OSError(f"cannot write the video {path}: OpenCV has no MPEG-4 writer here")
+    try:
+        for f in frames:
+            out.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
+    finally:
+        out.release()
