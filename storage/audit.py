@@ -1,0 +1,110 @@
+"""An audit's files in a run (beside its store), and the pairs it samples from.
+
+    audit/<name>/sample.json             the frozen sample: seed, n, kept share, when, items
+    audit/<name>/verdicts/<t>-<id>.json  one verdict per file, created once, never rewritten
+
+A verdict is its own create-if-absent file (``Location.create``), written as it is given:
+a crash loses nothing already given, several reviewers never write the same file, and the
+same code runs on a folder and on object storage. Reading sorts them by name (time first),
+so a reviewer's later verdict on an item replaces the earlier one.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import uuid
+from datetime import datetime, timezone
+
+import numpy as np
+import pandas as pd
+import zarr
+
+from handedit.audit import ITEM_COLUMNS, item_id
+from handedit.reasons import Reason
+from handedit.storage.ledger import iter_units, read_ledger
+from handedit.storage.location import Location
+from handedit.storage.store import read_array
+from handedit.storage.summary import curated_clips
+
+
+def audit_dir(name: str) -> str:
+    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}", name):
+        raise ValueError(f"audit name {name!r}: letters, digits, '_', '.', '-' (up to 64), starting with a letter or digit")
+    return f"audit/{name}"
+
+
+def _track(embodiment: str) -> str:
+    from handedit.embodiments import EmbodimentError, get_embodiment
+
+    try:
+        return get_embodiment(embodiment).track
+    except EmbodimentError:
+        return "unknown"
+
+
+def pairs(root: zarr.Group) -> pd.DataFrame:
+    """Every curated frame x embodiment pair of the store (``ITEM_COLUMNS``): kept by QC or not,
+    and for a rejected one the stage that first rejected it and its reason."""
+    from handedit.release.datasheet import primary_causes
+
+    clips = curated_clips(root)
+    rows = []
+    for unit in iter_units(root, clips):
+        if unit.stage != "qc":
+            continue
+        status = read_array(root[unit.path]["status"])
+        track = _track(unit.embodiment)
+        rows += [{"clip": unit.clip, "embodiment": unit.embodiment, "track": track, "frame": f, "kept": bool(s == Reason.OK)}
+                 for f, s in enumerate(status)]
+    frame = pd.DataFrame(rows, columns=["clip", "embodiment", "track", "frame", "kept"])
+    embs = sorted(set(frame["embodiment"]))
+    causes = primary_causes(read_ledger(root, clips=clips), embs)[["clip", "embodiment", "frame", "stage", "reason_name"]]
+    frame = frame.merge(causes.rename(columns={"reason_name": "reason"}), how="left", on=["clip", "embodiment", "frame"])
+    frame.loc[frame["kept"], ["stage", "reason"]] = ""
+    frame[["stage", "reason"]] = frame[["stage", "reason"]].fillna("")
+    frame["id"] = [item_id(c, e, f) for c, e, f in zip(frame["clip"], frame["embodiment"], frame["frame"])]
+    return frame[list(ITEM_COLUMNS)]
+
+
+def write_sample(loc: Location, name: str, items: pd.DataFrame, meta: dict) -> bool:
+    """Freeze a sample; False when ``name`` already has one (a sample is never redrawn under
+    the same name: its verdicts refer to its items)."""
+    body = {**meta, "created": datetime.now(timezone.utc).isoformat(),
+            "items": json.loads(items.to_json(orient="records"))}
+    return loc.create_json(f"{audit_dir(name)}/sample.json", body)
+
+
+def read_sample(loc: Location, name: str) -> tuple[dict, pd.DataFrame] | None:
+    body = loc.read_json(f"{audit_dir(name)}/sample.json")
+    if body is None:
+        return None
+    items = pd.DataFrame(body.pop("items"), columns=list(ITEM_COLUMNS))
+    items["kept"] = items["kept"].astype(bool)
+    items["frame"] = items["frame"].astype(np.int64)
+    return body, items
+
+
+def add_verdict(loc: Location, name: str, verdict: dict) -> dict:
+    """Store one checked verdict (``handedit.audit.parse_verdict``) as given, now."""
+    now = datetime.now(timezone.utc)
+    stamped = {**verdict, "time": now.isoformat()}
+    rel = f"{audit_dir(name)}/verdicts/{now.strftime('%Y%m%dT%H%M%S.%f')}-{uuid.uuid4().hex[:12]}.json"
+    if not loc.create_json(rel, stamped):  # a 48-bit collision in the same microsecond: try once more
+        return add_verdict(loc, name, verdict)
+    return stamped
+
+
+def read_verdicts(loc: Location, name: str) -> list[dict]:
+    """Every verdict of the audit, in the order given."""
+    base = f"{audit_dir(name)}/verdicts"
+    out = []
+    for file in sorted(loc.find(base)):
+        data = loc.read_json(f"{base}/{file}")
+        if data is not None:
+            out.append(data)
+    return out
+
+
+__all__ = ["add_verdict", "audit_dir", "pairs", "read_sample", "read_verdicts", "write_sample"]
+
