@@ -197,5 +197,33 @@ def report(items: pd.DataFrame, verdicts: pd.DataFrame) -> dict:
     return out
 
 
-__all__ = ["CAUSES", "CAUSE_OF_STAGE", "ITEM_COLUMNS", "VERDICTS", "breakdown", "cohen_kappa", "item_id", "latest",
+def annotator_view(source: np.ndarray | None, human_mask: np.ndarray | None, background: np.ndarray | None,
+                   pseudo_gt: np.ndarray | None, robot_mask: np.ndarray | None, height: int = 240) -> np.ndarray:
+    """The paper's annotator view as one (height, 5 x width, 3) image: source | human-mask overlay
+    | restored background | pseudo-GT | robot-mask overlay on the pseudo-GT. A missing panel
+    (the pair was rejected before that stage) is grey with a cross."""
+    import cv2
+
+    ref = next((a for a in (source, background, pseudo_gt) if a is not None), None)
+    h, w = (ref.shape[:2] if ref is not None else (height, height * 4 // 3))
+    size = (max(1, round(w * height / h)), height)
+
+    def tint(image, mask, colour):
+        if image is None or mask is None:
+            return None
+        out = image.astype(np.float32)
+        out[mask] = 0.5 * out[mask] + 0.5 * np.asarray(colour, np.float32)
+        return out.astype(np.uint8)
+
+    panels = []
+    for p in (source, tint(source, human_mask, (255, 64, 64)), background, pseudo_gt, tint(pseudo_gt, robot_mask, (64, 128, 255))):
+        if p is None:
+            p = np.full((h, w, 3), 128, np.uint8)
+            cv2.line(p, (0, 0), (w - 1, h - 1), (90, 90, 90), max(1, w // 160))
+            cv2.line(p, (0, h - 1), (w - 1, 0), (90, 90, 90), max(1, w // 160))
+        panels.append(cv2.resize(np.ascontiguousarray(p[..., :3]), size, interpolation=cv2.INTER_AREA))
+    return np.concatenate(panels, axis=1)
+
+
+__all__ = ["CAUSES", "annotator_view", "CAUSE_OF_STAGE", "ITEM_COLUMNS", "VERDICTS", "breakdown", "cohen_kappa", "item_id", "latest",
            "parse_verdict", "report", "sample", "wilson"]

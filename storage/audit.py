@@ -22,6 +22,7 @@ import zarr
 
 from handedit.audit import ITEM_COLUMNS, item_id
 from handedit.reasons import Reason
+from handedit.storage.layout import SCOPE_MASK, Unit
 from handedit.storage.ledger import iter_units, read_ledger
 from handedit.storage.location import Location
 from handedit.storage.store import read_array
@@ -67,6 +68,28 @@ def pairs(root: zarr.Group) -> pd.DataFrame:
     return frame[list(ITEM_COLUMNS)]
 
 
+def pair_views(root: zarr.Group, clip: str, embodiment: str, track: str, frame: int) -> dict[str, np.ndarray | None]:
+    """What the paper's annotator looked at for one pair: the source frame, the human mask of the
+    track's scope (both hands), the restored background, the pseudo-GT and the robot mask (both
+    hands); None for what the store does not hold (a pair rejected before that stage)."""
+    scope = track if track in SCOPE_MASK else "hand"
+
+    def frame_of(unit: Unit, name: str):
+        group = root.get(unit.path)
+        if group is None or name not in group:
+            return None
+        return read_array(group[name], int(frame))
+
+    def union(masks):
+        return None if masks is None else (np.asarray(masks) > 0).any(axis=0) if np.asarray(masks).ndim == 3 else masks > 0
+
+    return {"source": frame_of(Unit("ingest", clip), "frames"),
+            "human_mask": union(frame_of(Unit("segment", clip), SCOPE_MASK[scope])),
+            "background": frame_of(Unit("restore_background", clip, scope=scope), "background"),
+            "pseudo_gt": frame_of(Unit("harmonize", clip, embodiment=embodiment), "image"),
+            "robot_mask": union(frame_of(Unit("composite", clip, embodiment=embodiment), "robot_mask"))}
+
+
 def write_sample(loc: Location, name: str, items: pd.DataFrame, meta: dict) -> bool:
     """Freeze a sample; False when ``name`` already has one (a sample is never redrawn under
     the same name: its verdicts refer to its items)."""
@@ -106,5 +129,5 @@ def read_verdicts(loc: Location, name: str) -> list[dict]:
     return out
 
 
-__all__ = ["add_verdict", "audit_dir", "pairs", "read_sample", "read_verdicts", "write_sample"]
+__all__ = ["add_verdict", "audit_dir", "pair_views", "pairs", "read_sample", "read_verdicts", "write_sample"]
 

@@ -4,7 +4,7 @@ A screenshot is written where the test asks and, when ``HANDEDIT_SCREENSHOTS`` n
 copied there under its name: the README's pictures are retaken by
 
     HANDEDIT_SCREENSHOTS=docs .venv/bin/python -m pytest tests/test_dask_dashboard.py \
-        tests/test_deployments_live.py tests/test_release.py
+        tests/test_deployments_live.py tests/test_release.py tests/test_audit.py
 """
 
 from __future__ import annotations

@@ -91,12 +91,20 @@ def test_the_report_counts_each_reviewers_last_verdict():
     assert [i["verdict"] for i in rep["items"]] == ["keep", "keep", "keep", "reject", "reject", "keep"]
 
 
-def test_audit_commands_on_a_curated_run(tmp_path, capsys, prefect_api, dask_cluster):
+@pytest.fixture(scope="module")
+def curated(tmp_path_factory, prefect_api, dask_cluster):
     from handedit.flows.cli import main
 
-    run = tmp_path / "run"
+    run = tmp_path_factory.mktemp("audit") / "run"
     assert main(["curate", "--demo", "--out", str(run), "--clips", "2", "--frames", "8", "--width", "160", "--height", "120",
                  "--frames-per-chunk", "8", "--address", dask_cluster.scheduler_address, "--no-progress"]) == 0
+    return run
+
+
+def test_audit_commands_on_a_curated_run(curated, tmp_path, capsys):
+    from handedit.flows.cli import main
+
+    run = curated
     capsys.readouterr()
     assert main(["audit", "sample", str(run), "--n", "6", "--seed", "3"]) == 0
     assert "6 items" in capsys.readouterr().out
@@ -132,3 +140,69 @@ def test_audit_commands_on_a_curated_run(tmp_path, capsys, prefect_api, dask_clu
     assert sorted(i["id"] for i in rep["items"]) == sorted(ids)
     assert main(["audit", "report", str(run)]) == 0
     assert "accepted" in capsys.readouterr().out
+
+
+def test_the_review_page_by_keyboard_and_mouse_resumes_after_a_reload(curated, tmp_path):
+    """``handedit audit serve`` on 127.0.0.1, driven by Playwright in Debian's Chromium: a
+    verdict by key and one by click land in the run at once; reloading resumes at the first
+    item not yet judged."""
+    import socket
+    import subprocess
+    import sys
+    import time
+    import urllib.request
+
+    from _browser import browser
+    from playwright.sync_api import sync_playwright
+
+    from handedit.flows.cli import main
+    from handedit.storage import Location
+    from handedit.storage.audit import read_verdicts
+
+    assert main(["audit", "sample", str(curated), "--n", "5", "--name", "page", "--seed", "1"]) == 0
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    server = subprocess.Popen([sys.executable, "-m", "handedit.flows.cli", "audit", "serve", str(curated), "--name", "page",
+                               "--port", str(port)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    url = f"http://127.0.0.1:{port}/"
+    try:
+        deadline = time.time() + 60
+        while True:
+            try:
+                urllib.request.urlopen(url, timeout=2)
+                break
+            except OSError:
+                assert time.time() < deadline and server.poll() is None, server.stdout.read() if server.poll() else "no answer"
+                time.sleep(0.3)
+        with sync_playwright() as pw:
+            chrome = pw.chromium.launch(executable_path=browser(), args=["--no-sandbox", "--disable-gpu"])
+            page = chrome.new_page(viewport={"width": 1400, "height": 520})
+            page.goto(url)
+            page.fill("#reviewer", "ann")
+            page.press("#reviewer", "Enter")
+            page.wait_for_function("document.getElementById('progress').dataset.reviewed === '0'")
+            first = page.text_content("#info")
+            page.keyboard.press("k")  # keep, by key
+            page.wait_for_function("document.getElementById('progress').dataset.reviewed === '1'")
+            page.click("#reject-segmentation")  # reject, by mouse
+            page.wait_for_function("document.getElementById('progress').dataset.reviewed === '2'")
+            given = {v["item"]: (v["verdict"], v["cause"], v["reviewer"]) for v in read_verdicts(Location(curated), "page")}
+            assert sorted(given.values()) == [("keep", None, "ann"), ("reject", "segmentation", "ann")]
+            page.wait_for_function("document.getElementById('view').complete && document.getElementById('view').naturalWidth > 0")
+            page.screenshot(path=str(tmp_path / "audit_review.png"))
+            page.reload()  # resumes: the name is remembered, the page opens at the third item
+            page.wait_for_function("document.getElementById('progress').dataset.reviewed === '2'")
+            assert "item 3 of 5" in page.text_content("#info") and "item 1 of 5" in first
+            page.keyboard.press("ArrowLeft")  # back to the second: her verdict is shown
+            assert "your verdict: reject / segmentation" in page.text_content("#info")
+            chrome.close()
+    finally:
+        server.terminate()
+        server.wait(30)
+    import os
+    import shutil
+
+    keep = os.environ.get("HANDEDIT_SCREENSHOTS")
+    if keep:
+        shutil.copyfile(tmp_path / "audit_review.png", os.path.join(keep, "audit_review.png"))

@@ -3,6 +3,7 @@
     handedit audit sample RUN --n N [--name NAME] [--kept-share 0.5] [--seed S]
     handedit audit import RUN --name NAME FILE        verdicts made elsewhere (JSON Lines)
     handedit audit report RUN [--name NAME] [--json]
+    handedit audit serve RUN [--name NAME] [--port P]  the review page on 127.0.0.1
 
 ``sample`` freezes a stratified sample of kept and rejected frame x embodiment pairs in the
 run (``audit/<name>/``); ``import`` adds reviewers' verdicts, one JSON object per line
@@ -126,6 +127,22 @@ def cmd_report(args) -> int:
     return 0
 
 
+def cmd_serve(args) -> int:
+    import uvicorn
+
+    from handedit.dashboards.audit_app import make_app
+
+    try:
+        app = make_app(args.run, args.name)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"audit '{args.name}': review at http://{args.host}:{args.port}/ (Ctrl-C stops; verdicts are saved as given)",
+          flush=True)
+    uvicorn.run(app, host=args.host, port=args.port, log_level="warning")
+    return 0
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser("audit", help="sample pairs, import reviewers' verdicts, report how often they agree with QC")
     sub = p.add_subparsers(dest="audit_cmd", required=True)
@@ -146,6 +163,12 @@ def register(subparsers) -> None:
     r.add_argument("--name", default="audit")
     r.add_argument("--json", action="store_true", help="one JSON object (schema in the README)")
     r.set_defaults(func=cmd_report)
+    v = sub.add_parser("serve", help="the review page: keep / reject with a primary cause, by keyboard or mouse")
+    v.add_argument("run")
+    v.add_argument("--name", default="audit")
+    v.add_argument("--port", type=int, default=8790)
+    v.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1: this machine only)")
+    v.set_defaults(func=cmd_serve)
 
 
 __all__ = ["register"]
