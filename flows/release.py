@@ -79,6 +79,7 @@ def by_part(pairs: list[Pair]) -> dict[str, list[Pair]]:
 def plan_pairs(loc: Location, root, clips: list[str], embodiments: list[str], target_bytes: int) -> tuple[list[Pair], dict]:
     """Every kept pair of one curated run's ``clips``, each with its shard part (see module doc)."""
     from handedit.benchmark.testset import instruction
+    from handedit.storage.audit import release_view
     from handedit.storage.shards import read_manifest, shard_ids
 
     clips = set(clips)
@@ -90,6 +91,8 @@ def plan_pairs(loc: Location, root, clips: list[str], embodiments: list[str], ta
     pairs: list[Pair] = []
     fingerprints, stages, n_frames, hw = {}, {}, {}, None
     held_back = 0
+    rejected_by_audit, audits = release_view(loc)  # pairs reviewers rejected stay out of every release
+    left_out = []
     for clip in order:
         info = dict(root[Unit("ingest", clip).path].attrs.get("info") or {})
         meta = info.get("meta") or {}
@@ -116,6 +119,10 @@ def plan_pairs(loc: Location, root, clips: list[str], embodiments: list[str], ta
                 if unreviewed & set(replaced):
                     held_back += 1
                     continue
+                why = rejected_by_audit.get(f"{clip}/{emb}/{t}")
+                if why:
+                    left_out.append({"id": f"{clip}/{emb}/{t}", **why})
+                    continue
                 digests = [d for recs in (*clip_records.values(), *emb_records.values()) for d in _digests(recs, t // f)]
                 pairs.append(Pair(clip, emb, t, replaced, e.track, str(meta.get("dataset", "")),
                                   str(meta.get("task") or meta.get("task_folder") or ""), text, reference,
@@ -128,7 +135,8 @@ def plan_pairs(loc: Location, root, clips: list[str], embodiments: list[str], ta
         out += [replace(p, part=f"{group}/{cut[p.clip]:04d}") for p in members]
     source = {"store": loc.store_url, "clips": len(order), "stages": stages,
               "fingerprint": hashlib.sha256(json.dumps(fingerprints, sort_keys=True).encode()).hexdigest(),
-              "frames_per_chunk": f, "pairs_per_shard": per_part, "held_back_unreviewed": held_back}
+              "frames_per_chunk": f, "pairs_per_shard": per_part, "held_back_unreviewed": held_back,
+              "left_out_by_audit": left_out, "audits": audits}
     return out, source
 
 
@@ -157,7 +165,7 @@ def release(cfg: ReleaseConfig) -> dict:
     parent_pairs = read_pairs(loc, parent) if parent else None
     # a parent's shard is reused only if its bytes were checked against the records when it was written
     reusable = {s["key"]: s for s in (parent_manifest or {}).get("shards", []) if s.get("verified")}
-    pairs, sources, jobs, curated = [], [], [], []
+    pairs, sources, jobs, curated, left_out, audits = [], [], [], [], [], {}
     for store in cfg.sources:
         src = Location(store)
         root = open_store(src)
@@ -165,6 +173,9 @@ def release(cfg: ReleaseConfig) -> dict:
         require_complete(src, clips, "release")
         curated.append((root, clips))
         got, source = plan_pairs(src, root, clips, cfg.embodiments, cfg.target_shard_bytes)
+        left_out += source["left_out_by_audit"]
+        source["left_out_by_audit"] = len(source["left_out_by_audit"])  # the ids and why: changelog.json
+        audits.update({f"{src.url}#{name}": a for name, a in source["audits"].items()})
         sources.append(source)
         for members in by_part(got).values():
             key = shard_key(members)
@@ -194,7 +205,9 @@ def release(cfg: ReleaseConfig) -> dict:
     version = next_version(loc)
     sheet = datasheet.build(table, _status(curated), _ledger(curated),
                             sorted(set(table["embodiment"])) if len(table) else [])
+    sheet["audits"] = audits
     loc.write_table(f"{version}/pairs.parquet", table)
+    changes["left_out_by_audit"] = sorted(left_out, key=lambda r: r["id"])
     loc.write_json(f"{version}/changelog.json", {"parent": parent, **changes})
     loc.write_bytes(f"{version}/changelog.md", _changelog_md(version, parent, changes).encode())
     loc.write_json(f"{version}/datasheet.json", sheet)
@@ -203,7 +216,7 @@ def release(cfg: ReleaseConfig) -> dict:
         "schema": RELEASE_SCHEMA, "version": version, "parent": parent, "created": now_iso(), "code_version": code_version(),
         "links": links, "sources": sources, "counts": {"pairs": len(table), "shards": len(used), "shards_reused": sum(
             1 for k in used if shards[k]["reused"]), "added": len(changes["added"]), "removed": len(changes["removed"]),
-            "changed": len(changes["changed"])},
+            "changed": len(changes["changed"]), "left_out_by_audit": len(left_out)},
         "shards": [shards[key] for key in used],
     })
     if not publish(loc, version, manifest):
@@ -269,7 +282,13 @@ def _changelog_md(version: str, parent: str | None, changes: dict) -> str:
         if len(ids) > 1000:
             out.append(f"- ... {len(ids) - 1000} more (changelog.json)")
         out.append("")
-    return "\n".join(out)
+    left = changes.get("left_out_by_audit") or []
+    out += [f"## left out: rejected by a reviewer in an audit: {len(left)}", ""]
+    out += [f"- {md(r['id'])}: audit {md(r['audit'])}, cause {md(r['cause'] or 'not given')}, "
+            f"{r['reviewers']} reviewer(s)" for r in left[:1000]]
+    if len(left) > 1000:
+        out.append(f"- ... {len(left) - 1000} more (changelog.json)")
+    return "\n".join(out) + "\n"
 
 
 @flow(name="release-from-config", log_prints=True)

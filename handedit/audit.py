@@ -127,7 +127,7 @@ def cohen_kappa(a: Iterable[bool], b: Iterable[bool]) -> float | None:
     return 1.0 if pe == 1 else (po - pe) / (1 - pe)
 
 
-def _item_verdicts(items: pd.DataFrame, verdicts: pd.DataFrame) -> pd.DataFrame:
+def item_verdicts(items: pd.DataFrame, verdicts: pd.DataFrame) -> pd.DataFrame:
     """Each sampled item with its reviewers' verdict: the majority of its reviewers (a tie
     rejects: a pair two people disagree on is not one to publish) and the most named cause."""
     rows = []
@@ -186,7 +186,7 @@ def breakdown(rows: pd.DataFrame) -> list[dict]:
 def report(items: pd.DataFrame, verdicts: pd.DataFrame) -> dict:
     """The audit's numbers over all items and per (embodiment, track); ``items`` as ``sample``
     returns them, ``verdicts`` as ``latest`` returns them."""
-    rows = _item_verdicts(items, verdicts)
+    rows = item_verdicts(items, verdicts)
     out = {**_measures(rows, verdicts), "breakdown": breakdown(rows), "per_embodiment": []}
     for (emb, track), g in rows.groupby(["embodiment", "track"], sort=True):
         out["per_embodiment"].append({"embodiment": emb, "track": track, **_measures(g, verdicts),
@@ -225,5 +225,5 @@ def annotator_view(source: np.ndarray | None, human_mask: np.ndarray | None, bac
     return np.concatenate(panels, axis=1)
 
 
-__all__ = ["CAUSES", "annotator_view", "CAUSE_OF_STAGE", "ITEM_COLUMNS", "VERDICTS", "breakdown", "cohen_kappa", "item_id", "latest",
+__all__ = ["CAUSES", "annotator_view", "CAUSE_OF_STAGE", "ITEM_COLUMNS", "VERDICTS", "breakdown", "cohen_kappa", "item_id", "item_verdicts", "latest",
            "parse_verdict", "report", "sample", "wilson"]

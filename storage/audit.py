@@ -129,5 +129,27 @@ def read_verdicts(loc: Location, name: str) -> list[dict]:
     return out
 
 
-__all__ = ["add_verdict", "audit_dir", "pair_views", "pairs", "read_sample", "read_verdicts", "write_sample"]
+def audit_names(loc: Location) -> list[str]:
+    return [n for n in loc.listdir("audit") if loc.exists(f"audit/{n}/sample.json")]
+
+
+def release_view(loc: Location) -> tuple[dict[str, dict], dict[str, dict]]:
+    """What a release takes from a run's audits: the items reviewers rejected (id -> audit,
+    cause, reviewers; the majority rule of ``handedit.audit.item_verdicts``) and each audit's
+    precision (name -> precision, its 95 % interval, kept items reviewed)."""
+    from handedit.audit import item_verdicts, latest, report
+
+    rejected, summary = {}, {}
+    for name in audit_names(loc):
+        _, items = read_sample(loc, name)
+        verdicts = latest(read_verdicts(loc, name))
+        rows = item_verdicts(items, verdicts)
+        for r in rows[rows["verdict"] == "reject"].itertuples(index=False):
+            rejected[r.id] = {"audit": name, "cause": r.cause, "reviewers": int(r.reviewers)}
+        rep = report(items, verdicts)
+        summary[name] = {k: rep[k] for k in ("precision", "precision_ci", "n_kept_reviewed", "n_reviewed", "n_items")}
+    return rejected, summary
+
+
+__all__ = ["add_verdict", "audit_dir", "audit_names", "pair_views", "pairs", "release_view", "read_sample", "read_verdicts", "write_sample"]
 

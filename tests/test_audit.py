@@ -206,3 +206,30 @@ def test_the_review_page_by_keyboard_and_mouse_resumes_after_a_reload(curated, t
     keep = os.environ.get("HANDEDIT_SCREENSHOTS")
     if keep:
         shutil.copyfile(tmp_path / "audit_review.png", os.path.join(keep, "audit_review.png"))
+
+
+def test_pairs_a_reviewer_rejected_stay_out_of_the_next_release(curated, tmp_path, dask_cluster):
+    """The audits' rejections (the commands test above: ann and bob split on one kept pair, which
+    a tie rejects) leave those pairs out; the changelog says why, the datasheet gives the precision."""
+    from handedit.flows.cli import main
+    from handedit.storage import Location
+    from handedit.storage.audit import release_view
+    from handedit.storage.releases import read_pairs, read_release
+
+    rejected, audits = release_view(Location(curated))
+    assert rejected and "audit" in audits
+    rel = tmp_path / "releases"
+    assert main(["release", "--from", str(curated), "--out", str(rel), "--address", dask_cluster.scheduler_address]) == 0
+    loc = Location(rel)
+    ids = set(read_pairs(loc, "v0001")["id"])
+    assert not ids & set(rejected)
+    kept_before = {r["id"] for r in json.loads((curated / "audit" / "audit" / "sample.json").read_text())["items"] if r["kept"]}
+    left = json.loads((rel / "v0001" / "changelog.json").read_text())["left_out_by_audit"]
+    left_ids = {r["id"] for r in left}
+    assert left_ids <= set(rejected) and left_ids & kept_before  # the tied kept pair among them
+    assert all(r["audit"] in ("audit", "page") and r["reviewers"] >= 1 for r in left)
+    assert read_release(loc, "v0001")["counts"]["left_out_by_audit"] == len(left)
+    assert "rejected by a reviewer in an audit" in (rel / "v0001" / "changelog.md").read_text()
+    sheet = (rel / "v0001" / "datasheet.md").read_text()
+    p, (lo, hi) = audits["audit"]["precision"], audits["audit"]["precision_ci"]
+    assert "## Audits: kept pairs a reviewer accepts" in sheet and f"{100 * p:.1f}%" in sheet and f"{100 * lo:.1f}-{100 * hi:.1f}%" in sheet

@@ -72,4 +72,11 @@ def markdown(sheet: dict, title: str) -> str:
     out += [f"| Total | {total:,} / {total:,} ({100 if total else 0}%) |", "",
             "| stage | reason | count | share |", "|---|---|---:|---:|"]
     out += [f"| {md(r['stage'])} | {md(r['reason'])} | {r['count']:,} | {100 * r['share']:.2f}% |" for r in rej["by_reason"]]
+    if sheet.get("audits"):
+        out += ["", "## Audits: kept pairs a reviewer accepts", "",
+                "| audit | kept pairs reviewed | accepted | 95 % interval (Wilson) |", "|---|---:|---:|---:|"]
+        for name, a in sorted(sheet["audits"].items()):
+            p, (lo, hi) = a["precision"], a["precision_ci"]
+            out.append(f"| {md(name)} | {a['n_kept_reviewed']:,} | {'-' if p is None else f'{100 * p:.1f}%'} | "
+                       f"{'-' if p is None else f'{100 * lo:.1f}-{100 * hi:.1f}%'} |")
     return "\n".join(out) + "\n"
