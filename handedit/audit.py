@@ -152,12 +152,14 @@ def _measures(rows: pd.DataFrame, verdicts: pd.DataFrame) -> dict:
     also = int((rejected["verdict"] == "reject").sum())
     lo, hi = wilson(accepted, len(kept))
     rlo, rhi = wilson(also, len(rejected))
-    # between reviewers: items with two or more of them (Fleiss' kappa over keep/reject)
+    # between reviewers: Fleiss' kappa over keep/reject, on the items with the most common number
+    # (two or more) of reviewers, as it needs the same number per item
     multi = verdicts[verdicts["item"].isin(set(reviewed["id"]))].groupby("item")
     counts = np.array([[int((g["verdict"] == "keep").sum()), int((g["verdict"] == "reject").sum())]
-                       for _, g in multi if len(g) >= 2])
+                       for _, g in multi if len(g) >= 2]).reshape(-1, 2)
     inter = None
-    if len(counts) and len(set(counts.sum(axis=1))) == 1:
+    if len(counts):
+        counts = counts[counts.sum(axis=1) == np.bincount(counts.sum(axis=1)).argmax()]
         k = fleiss_kappa(counts)
         inter = None if not np.isfinite(k) else float(k)  # undefined when every verdict is the same
     return {"n_items": int(len(rows)), "n_reviewed": int(len(reviewed)),

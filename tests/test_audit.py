@@ -89,6 +89,15 @@ def test_the_report_counts_each_reviewers_last_verdict():
     causes = {b["cause"]: (b["reviewers"], b["qc"]) for b in rep["breakdown"]}
     assert causes["retargeting"] == (1, 1) and causes["segmentation"] == (1, 1) and causes["rendering"] == (0, 0)
     assert [i["verdict"] for i in rep["items"]] == ["keep", "keep", "keep", "reject", "reject", "keep"]
+    # bob on three items, cy and dee on a fourth: Fleiss' kappa over the three rated twice
+    more = given + [{"item": ids[0], "verdict": "keep", "cause": None, "reviewer": "bob"},
+                    {"item": ids[1], "verdict": "reject", "cause": "input", "reviewer": "bob"},
+                    {"item": ids[3], "verdict": "reject", "cause": "retargeting", "reviewer": "bob"},
+                    {"item": ids[2], "verdict": "reject", "cause": "rendering", "reviewer": "cy"},
+                    {"item": ids[2], "verdict": "keep", "cause": None, "reviewer": "dee"}]
+    two = report(items, latest(more))
+    # counts (keep, reject): (2, 0), (1, 1), (0, 2): P_i = 1, 0, 1 -> P = 2/3; p = (1/2, 1/2) -> Pe = 1/2
+    assert two["inter_reviewer_items"] == 3 and two["inter_reviewer_kappa"] == pytest.approx((2 / 3 - 0.5) / 0.5)
 
 
 @pytest.fixture(scope="module")
