@@ -416,6 +416,18 @@ def testset_meta(bench: str | Path) -> dict:
 # ----------------------------------------------------------------------------- report
 
 
+def evaluated_metrics(bench: str | Path) -> dict[str, dict[str, dict[str, float]]]:
+    """track -> editor -> metric means, from every evaluated editor's results (None for a metric
+    not computed)."""
+    results = Path(bench) / "results"
+    out: dict = {}
+    for folder in sorted(results.iterdir()) if results.is_dir() else []:
+        if (folder / "summary.json").is_file():
+            for track, t in (read_json(folder / "summary.json").get("tracks") or {}).items():
+                out.setdefault(track, {})[folder.name] = {k: (float("nan") if v is None else v) for k, v in t["metrics"].items()}
+    return out
+
+
 def write_report(bench: str | Path, editors: list[str] | None = None) -> dict[str, list[Path]]:
     """Tables (Markdown, LaTeX, CSV) and a radar PNG per track from results/*/summary.json."""
     from handedit.benchmark.report import REFERENCE_ROWS, radar_png, track_tables
@@ -432,6 +444,7 @@ def write_report(bench: str | Path, editors: list[str] | None = None) -> dict[st
         return read_json(folder / "report_summary.json" if (folder / "report_summary.json").is_file() else folder / "summary.json")
 
     summaries = {n: project_summary(n) for n in names}
+    human = out.report / "human.md"  # `bench human-report`
     written: dict[str, list[Path]] = {}
     md_all = []
     for scope, title in TRACK_NAMES.items():
@@ -452,6 +465,7 @@ def write_report(bench: str | Path, editors: list[str] | None = None) -> dict[st
     for n, s in summaries.items():
         if s.get("n_errors"):
             notes.append(f"\n{n}: {s['n_errors']} item(s) not scored (see results/{n}/items.csv)")
-    md = write_text(out.report / "tables.md", "\n".join(md_all) + "\n".join(notes) + "\n")
+    md = write_text(out.report / "tables.md", "\n".join(md_all) + "\n".join(notes) + "\n"
+                    + ("\n" + human.read_text() if human.is_file() else ""))
     written.setdefault("all", []).append(md)
     return written

@@ -8,6 +8,7 @@
     handedit bench evaluate --manifest toolkit.jsonl --out RESULTS --name X   (toolkit manifests)
     handedit bench export --bench BENCH --name X --out toolkit.jsonl
     handedit bench report --bench BENCH
+    handedit bench human-report --bench BENCH --ratings ratings.jsonl   (the paper's human evaluation)
 
 Keys come from the environment (HANDEDIT_EDITOR_API_KEY, HANDEDIT_VLM_API_KEY, or
 OPENAI_API_KEY), never from the command line.
@@ -173,6 +174,50 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_human_report(args: argparse.Namespace) -> int:
+    """Raters' scores (JSON Lines) -> the paper's agreement table, into the bench report."""
+    import pandas as pd
+
+    from handedit.benchmark.human_eval import human_report, markdown, parse_rating
+    from handedit.flows.benchmark import evaluated_metrics, load_manifest
+    from handedit.storage.benchmark import BenchDir, BenchIOError, iter_jsonl, write_json, write_text
+
+    out = BenchDir(Path(args.bench))
+    try:
+        items, _ = load_manifest(out.manifest)
+        tracks = {it.id: it.replacement_scope for it in items}
+        editors = {p.name for p in (out.root / "predictions").iterdir() if p.is_dir()} if (out.root / "predictions").is_dir() else set()
+        rows, errors = [], []
+        for no, obj, err in iter_jsonl(args.ratings):
+            if err:
+                errors.append(err)
+                continue
+            try:
+                rows += parse_rating(obj, tracks, editors)
+            except ValueError as exc:
+                errors.append(f"{args.ratings}:{no}: {exc}")
+    except BenchIOError as exc:
+        print(f"handedit bench human-report: {exc}", file=sys.stderr)
+        return 2
+    if errors:
+        print("handedit bench human-report: no rating read:\n  " + "\n  ".join(errors[:20])
+              + (f"\n  ... and {len(errors) - 20} more" if len(errors) > 20 else ""), file=sys.stderr)
+        return 2
+    if not rows:
+        print(f"handedit bench human-report: {args.ratings} holds no rating", file=sys.stderr)
+        return 2
+    ratings = pd.DataFrame(rows)
+    # one rater's last scores of an output on an axis count (a re-rating replaces the first)
+    ratings = ratings.drop_duplicates(["track", "editor", "item", "rater", "axis"], keep="last")
+    rep = human_report(ratings, evaluated_metrics(out.root))
+    write_json(out.report / "human.json", rep)
+    text = markdown(rep)
+    write_text(out.report / "human.md", text)
+    print(text, end="")
+    print(f"-> {out.report / 'human.json'}, {out.report / 'human.md'} (`handedit bench report` adds it to tables.md)")
+    return 0
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser("bench", help="the HandEdit benchmark: build, run editors, evaluate, report")
     sub = p.add_subparsers(dest="bench_cmd", required=True)
@@ -238,3 +283,8 @@ def register(subparsers) -> None:
     rp.add_argument("--bench", required=True)
     rp.add_argument("--name", action="append", help="editors to include (default: all evaluated)")
     rp.set_defaults(func=cmd_report)
+    hr = sub.add_parser("human-report", help="the paper's human evaluation: raters' agreement and metric-human kappa")
+    hr.add_argument("--bench", required=True)
+    hr.add_argument("--ratings", required=True, help='JSON Lines: {"item", "editor", "rater", "target", '
+                    '"scene_interaction", "realism"} with scores 1-5')
+    hr.set_defaults(func=cmd_human_report)
