@@ -23,6 +23,34 @@ from handedit.storage.layout import (BENCH_ITEM_FILES, BENCH_MANIFEST, BENCH_MET
 from handedit.storage.store import jsonable
 
 
+RATINGS = "human/ratings"  # the rating page's ratings, one create-once file each
+
+
+def add_rating(bench: str | Path, row: dict) -> None:
+    """Store one checked rating as given (a crash loses nothing given; raters never share a file)."""
+    import uuid
+    from datetime import datetime, timezone
+
+    from handedit.storage.location import Location
+
+    now = datetime.now(timezone.utc)
+    rel = f"{RATINGS}/{now.strftime('%Y%m%dT%H%M%S.%f')}-{uuid.uuid4().hex[:12]}.json"
+    Location(str(bench)).create_json(rel, {**row, "time": now.isoformat()})
+
+
+def read_ratings(bench: str | Path) -> list[dict]:
+    """The page's ratings in the order given (a rater's later rating of an output replaces the earlier)."""
+    from handedit.storage.location import Location
+
+    loc = Location(str(bench))
+    out = []
+    for name in sorted(loc.find(RATINGS)):
+        row = loc.read_json(f"{RATINGS}/{name}")
+        if row is not None:
+            out.append(row)
+    return out
+
+
 class BenchIOError(RuntimeError):
     """A benchmark file that is missing or unreadable; the message names it."""
 

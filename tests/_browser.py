@@ -4,7 +4,7 @@ A screenshot is written where the test asks and, when ``HANDEDIT_SCREENSHOTS`` n
 copied there under its name: the README's pictures are retaken by
 
     HANDEDIT_SCREENSHOTS=docs .venv/bin/python -m pytest tests/test_dask_dashboard.py \
-        tests/test_deployments_live.py tests/test_release.py tests/test_audit.py
+        tests/test_deployments_live.py tests/test_release.py tests/test_audit.py tests/test_benchmark.py
 """
 
 from __future__ import annotations
@@ -13,10 +13,13 @@ import base64
 import json
 import os
 import shutil
+import socket
 import subprocess
+import sys
 import tempfile
 import time
 import urllib.request
+from contextlib import contextmanager
 from pathlib import Path
 
 # no background traffic: this machine's closed network refuses it, many connections at a time
@@ -83,10 +86,7 @@ class Tab:
     def png(self, path: Path) -> Path:
         """A PNG of the tab at ``path`` (and in ``$HANDEDIT_SCREENSHOTS``, if set)."""
         path.write_bytes(base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"]))
-        keep = os.environ.get("HANDEDIT_SCREENSHOTS")
-        if keep:
-            Path(keep).mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(path, Path(keep) / path.name)
+        keep_screenshot(path)
         return path
 
     def close(self) -> None:
@@ -108,3 +108,36 @@ def screenshot(url: str, path: Path, wait_s: float = 3.0, size: tuple[int, int] 
         tab.open(url, wait_s).png(path)
     assert path.stat().st_size > 10_000, f"the screenshot of {url} is blank"
     return path
+
+
+@contextmanager
+def served(args: list[str]):
+    """``handedit ARGS --port P`` (a page server) on a free 127.0.0.1 port, as a real process:
+    yields its URL once it answers; stopped afterwards."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    server = subprocess.Popen([sys.executable, "-m", "handedit.flows.cli", *args, "--port", str(port)],
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    url = f"http://127.0.0.1:{port}/"
+    try:
+        deadline = time.time() + 60
+        while True:
+            try:
+                urllib.request.urlopen(url, timeout=2)
+                break
+            except OSError:
+                assert time.time() < deadline and server.poll() is None, server.stdout.read() if server.poll() else "no answer"
+                time.sleep(0.3)
+        yield url
+    finally:
+        server.terminate()
+        server.wait(30)
+
+
+def keep_screenshot(path: Path) -> None:
+    """Copy a picture taken by another driver (Playwright) where ``HANDEDIT_SCREENSHOTS`` says."""
+    keep = os.environ.get("HANDEDIT_SCREENSHOTS")
+    if keep:
+        Path(keep).mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(path, Path(keep) / path.name)

@@ -155,13 +155,7 @@ def test_the_review_page_by_keyboard_and_mouse_resumes_after_a_reload(curated, t
     """``handedit audit serve`` on 127.0.0.1, driven by Playwright in Debian's Chromium: a
     verdict by key and one by click land in the run at once; reloading resumes at the first
     item not yet judged."""
-    import socket
-    import subprocess
-    import sys
-    import time
-    import urllib.request
-
-    from _browser import browser
+    from _browser import browser, keep_screenshot, served
     from playwright.sync_api import sync_playwright
 
     from handedit.flows.cli import main
@@ -169,21 +163,7 @@ def test_the_review_page_by_keyboard_and_mouse_resumes_after_a_reload(curated, t
     from handedit.storage.audit import read_verdicts
 
     assert main(["audit", "sample", str(curated), "--n", "5", "--name", "page", "--seed", "1"]) == 0
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    server = subprocess.Popen([sys.executable, "-m", "handedit.flows.cli", "audit", "serve", str(curated), "--name", "page",
-                               "--port", str(port)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    url = f"http://127.0.0.1:{port}/"
-    try:
-        deadline = time.time() + 60
-        while True:
-            try:
-                urllib.request.urlopen(url, timeout=2)
-                break
-            except OSError:
-                assert time.time() < deadline and server.poll() is None, server.stdout.read() if server.poll() else "no answer"
-                time.sleep(0.3)
+    with served(["audit", "serve", str(curated), "--name", "page"]) as url:
         with sync_playwright() as pw:
             chrome = pw.chromium.launch(executable_path=browser(), args=["--no-sandbox", "--disable-gpu"])
             page = chrome.new_page(viewport={"width": 1400, "height": 520})
@@ -206,15 +186,7 @@ def test_the_review_page_by_keyboard_and_mouse_resumes_after_a_reload(curated, t
             page.keyboard.press("ArrowLeft")  # back to the second: her verdict is shown
             assert "your verdict: reject / segmentation" in page.text_content("#info")
             chrome.close()
-    finally:
-        server.terminate()
-        server.wait(30)
-    import os
-    import shutil
-
-    keep = os.environ.get("HANDEDIT_SCREENSHOTS")
-    if keep:
-        shutil.copyfile(tmp_path / "audit_review.png", os.path.join(keep, "audit_review.png"))
+    keep_screenshot(tmp_path / "audit_review.png")
 
 
 def test_pairs_a_reviewer_rejected_stay_out_of_the_next_release(curated, tmp_path, dask_cluster):

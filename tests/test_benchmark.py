@@ -431,3 +431,47 @@ def test_human_report_from_raters_scores(bench, scored, tmp_path, capsys):
             assert a["pairs"] == 1 and a["kappa"] == pytest.approx(1.0 if o[metric] > c[metric] else -1.0), (axis, a, c, o)
     write_report(bench["dir"])
     assert "Human evaluation" in (BenchDir(bench["dir"]).report / "tables.md").read_text()
+
+
+def test_the_rating_page_by_keyboard_and_mouse(bench, scored, tmp_path, capsys):
+    """``handedit bench rate``, driven by Playwright in Debian's Chromium: the blinded study's page
+    (no editor name on it), one output scored by keys and one by clicks, each stored when its three
+    scores are given; a reload resumes; `bench human-report` reads them without a file."""
+    import re
+
+    from _browser import browser, keep_screenshot, served
+    from playwright.sync_api import sync_playwright
+
+    from handedit.flows.cli import main
+    from handedit.storage.benchmark import read_ratings
+
+    def rated(n: int) -> str:
+        return f"document.getElementById('progress').dataset.rated === '{n}'"
+
+    with served(["bench", "rate", "--bench", str(bench["dir"])]) as url, sync_playwright() as pw:
+        chrome = pw.chromium.launch(executable_path=browser(), args=["--no-sandbox", "--disable-gpu"])
+        page = chrome.new_page(viewport={"width": 1300, "height": 900})
+        page.goto(url)
+        page.fill("#rater", "ann")
+        page.press("#rater", "Enter")
+        page.wait_for_function(rated(0))
+        assert not re.search(r"\b(copy|oracle)\b", page.content())  # blinded: no editor name anywhere
+        assert "output 1 of " in page.text_content("#info") and page.text_content("#instruction").startswith("Replace")
+        for key in ("5", "4", "3"):  # target, scene_interaction, realism
+            page.keyboard.press(key)
+        page.wait_for_function(rated(1))
+        for axis, s in (("target", 1), ("scene_interaction", 2), ("realism", 2)):
+            page.click(f"#{axis}-{s}")
+        page.wait_for_function(rated(2))
+        page.wait_for_function("['source', 'reference', 'output'].every((i) => document.getElementById(i).naturalWidth > 0)")
+        page.screenshot(path=str(tmp_path / "bench_rating.png"))
+        page.reload()
+        page.wait_for_function(rated(2))
+        assert "output 3 of " in page.text_content("#info")
+        chrome.close()
+    keep_screenshot(tmp_path / "bench_rating.png")
+    given = read_ratings(bench["dir"])
+    assert sorted((r["target"], r["scene_interaction"], r["realism"], r["rater"]) for r in given) == [(1, 2, 2, "ann"), (5, 4, 3, "ann")]
+    assert main(["bench", "human-report", "--bench", str(bench["dir"])]) == 0
+    rep = json.loads((BenchDir(bench["dir"]).report / "human.json").read_text())
+    assert rep["raters"] == 1 and rep["outputs"] == 2 and rep["ratings"] == 6

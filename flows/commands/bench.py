@@ -8,7 +8,8 @@
     handedit bench evaluate --manifest toolkit.jsonl --out RESULTS --name X   (toolkit manifests)
     handedit bench export --bench BENCH --name X --out toolkit.jsonl
     handedit bench report --bench BENCH
-    handedit bench human-report --bench BENCH --ratings ratings.jsonl   (the paper's human evaluation)
+    handedit bench rate --bench BENCH [--port P]                        (the paper's blinded rating page)
+    handedit bench human-report --bench BENCH [--ratings ratings.jsonl] (the paper's human evaluation)
 
 Keys come from the environment (HANDEDIT_EDITOR_API_KEY, HANDEDIT_VLM_API_KEY, or
 OPENAI_API_KEY), never from the command line.
@@ -180,7 +181,7 @@ def cmd_human_report(args: argparse.Namespace) -> int:
 
     from handedit.benchmark.human_eval import human_report, markdown, parse_rating
     from handedit.flows.benchmark import evaluated_metrics, load_manifest
-    from handedit.storage.benchmark import BenchDir, BenchIOError, iter_jsonl, write_json, write_text
+    from handedit.storage.benchmark import BenchDir, BenchIOError, iter_jsonl, read_ratings, write_json, write_text
 
     out = BenchDir(Path(args.bench))
     try:
@@ -188,7 +189,9 @@ def cmd_human_report(args: argparse.Namespace) -> int:
         tracks = {it.id: it.replacement_scope for it in items}
         editors = {p.name for p in (out.root / "predictions").iterdir() if p.is_dir()} if (out.root / "predictions").is_dir() else set()
         rows, errors = [], []
-        for no, obj, err in iter_jsonl(args.ratings):
+        for obj in read_ratings(out.root):  # given on `bench rate`'s page, checked there
+            rows += parse_rating({k: v for k, v in obj.items() if k != "time"}, tracks, editors)
+        for no, obj, err in (iter_jsonl(args.ratings) if args.ratings else ()):
             if err:
                 errors.append(err)
                 continue
@@ -204,7 +207,8 @@ def cmd_human_report(args: argparse.Namespace) -> int:
               + (f"\n  ... and {len(errors) - 20} more" if len(errors) > 20 else ""), file=sys.stderr)
         return 2
     if not rows:
-        print(f"handedit bench human-report: {args.ratings} holds no rating", file=sys.stderr)
+        print(f"handedit bench human-report: no rating: rate on `handedit bench rate --bench {args.bench}` or give "
+              f"--ratings FILE", file=sys.stderr)
         return 2
     ratings = pd.DataFrame(rows)
     # one rater's last scores of an output on an axis count (a re-rating replaces the first)
@@ -215,6 +219,21 @@ def cmd_human_report(args: argparse.Namespace) -> int:
     write_text(out.report / "human.md", text)
     print(text, end="")
     print(f"-> {out.report / 'human.json'}, {out.report / 'human.md'} (`handedit bench report` adds it to tables.md)")
+    return 0
+
+
+def cmd_rate(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from handedit.dashboards.rating_app import make_app
+
+    try:
+        app = make_app(args.bench, args.seed)
+    except ValueError as exc:
+        print(f"handedit bench rate: {exc}", file=sys.stderr)
+        return 2
+    print(f"rate at http://{args.host}:{args.port}/ (Ctrl-C stops; ratings are saved as given)", flush=True)
+    uvicorn.run(app, host=args.host, port=args.port, log_level="warning")
     return 0
 
 
@@ -285,6 +304,12 @@ def register(subparsers) -> None:
     rp.set_defaults(func=cmd_report)
     hr = sub.add_parser("human-report", help="the paper's human evaluation: raters' agreement and metric-human kappa")
     hr.add_argument("--bench", required=True)
-    hr.add_argument("--ratings", required=True, help='JSON Lines: {"item", "editor", "rater", "target", '
-                    '"scene_interaction", "realism"} with scores 1-5')
+    hr.add_argument("--ratings", help='ratings made elsewhere, JSON Lines: {"item", "editor", "rater", "target", '
+                    '"scene_interaction", "realism"} with scores 1-5 (with those given on `bench rate`)')
     hr.set_defaults(func=cmd_human_report)
+    ra = sub.add_parser("rate", help="the paper's blinded rating page: score editors' outputs on three axes")
+    ra.add_argument("--bench", required=True)
+    ra.add_argument("--port", type=int, default=8791)
+    ra.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1: this machine only)")
+    ra.add_argument("--seed", type=int, default=0, help="the fixed shuffle of the outputs")
+    ra.set_defaults(func=cmd_rate)

@@ -19,6 +19,26 @@ from handedit.metrics.human import AXIS_METRIC, agreement_table
 AXES = tuple(AXIS_METRIC)  # target, scene_interaction, realism
 AXIS_TITLES = {"target": "Target-robot correctness", "scene_interaction": "Scene-and-interaction preservation",
                "realism": "Realism with physical plausibility"}
+# the paper's rating guide (Table: anchors of scores 1, 3 and 5) and the instruction shown to annotators
+GUIDE = {
+    "target": {1: "The requested robot is missing, mostly human-like, or clearly the wrong embodiment.",
+               3: "Robot cues are visible, but key morphology, material, or color details are wrong.",
+               5: "The requested robot is clearly recognizable, with correct hand or hand-arm appearance."},
+    "scene_interaction": {1: "The object, contact, occlusion, or scene layout is heavily changed.",
+                          3: "The main interaction is partly preserved, but visible contact or object-state errors remain.",
+                          5: "The original object state and hand-object interaction are well preserved."},
+    "realism": {1: "Severe artifacts, broken geometry, or implausible scale/contact are present.",
+                3: "The image is understandable, but artifacts or physical inconsistencies remain.",
+                5: "The edit looks coherent, physically plausible, and visually natural."},
+}
+INSTRUCTION = ("You are evaluating an edited image for an egocentric human-to-robot hand editing benchmark. For each "
+               "example, you will see a source image, a text instruction, a reference render of the target robot, and "
+               "one edited image. The reference render shows which robot should appear in the edited image. It does not "
+               "show the exact interaction pose. Please rate the edited image on three separate axes: whether the "
+               "requested target robot is correctly shown; whether the original object, scene, and hand-object "
+               "interaction are preserved; whether the final image looks realistic and physically plausible. Judge the "
+               "edited image directly. Do not compare it to a hidden ground-truth image. Focus on whether the requested "
+               "edit is successful and whether the final image remains coherent.")
 
 
 def parse_rating(obj: dict, tracks: dict[str, str], editors: set[str]) -> list[dict]:
@@ -86,4 +106,4 @@ def markdown(rep: dict) -> str:
     return "\n".join(out) + "\n"
 
 
-__all__ = ["AXES", "human_report", "markdown", "parse_rating"]
+__all__ = ["AXES", "AXIS_TITLES", "GUIDE", "INSTRUCTION", "human_report", "markdown", "parse_rating"]

@@ -136,7 +136,7 @@ def agreement_table(ratings, metrics: Mapping[str, Mapping[str, Mapping[str, flo
         kappa, n_pairs = metric_human_agreement(pairs)
         out[axis] = {
             "krippendorff_alpha": krippendorff_alpha_ordinal(wide.to_numpy().T),
-            "icc_2k": icc_2k(complete.to_numpy()) if len(complete) >= 2 else float("nan"),
+            "icc_2k": icc_2k(complete.to_numpy()) if complete.shape[0] >= 2 and complete.shape[1] >= 2 else float("nan"),
             "kappa": kappa, "pairs": n_pairs, "units": len(wide), "raters": wide.shape[1],
         }
     return out
