@@ -3,7 +3,7 @@
     audit/<name>/sample.json             the frozen sample: seed, n, kept share, when, items
     audit/<name>/verdicts/<t>-<id>.json  one verdict per file, created once, never rewritten
 
-A verdict is its own create-if-absent file (``Location.create``), written as it is given:
+A verdict is its own create-if-absent file (``Location.add_entry``), written as it is given:
 a crash loses nothing already given, several reviewers never write the same file, and the
 same code runs on a folder and on object storage. Reading sorts them by name (time first),
 so a reviewer's later verdict on an item replaces the earlier one.
@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import re
-import uuid
 from datetime import datetime, timezone
 
 import numpy as np
@@ -110,23 +109,12 @@ def read_sample(loc: Location, name: str) -> tuple[dict, pd.DataFrame] | None:
 
 def add_verdict(loc: Location, name: str, verdict: dict) -> dict:
     """Store one checked verdict (``handedit.audit.parse_verdict``) as given, now."""
-    now = datetime.now(timezone.utc)
-    stamped = {**verdict, "time": now.isoformat()}
-    rel = f"{audit_dir(name)}/verdicts/{now.strftime('%Y%m%dT%H%M%S.%f')}-{uuid.uuid4().hex[:12]}.json"
-    if not loc.create_json(rel, stamped):  # a 48-bit collision in the same microsecond: try once more
-        return add_verdict(loc, name, verdict)
-    return stamped
+    return loc.add_entry(f"{audit_dir(name)}/verdicts", verdict)
 
 
 def read_verdicts(loc: Location, name: str) -> list[dict]:
     """Every verdict of the audit, in the order given."""
-    base = f"{audit_dir(name)}/verdicts"
-    out = []
-    for file in sorted(loc.find(base)):
-        data = loc.read_json(f"{base}/{file}")
-        if data is not None:
-            out.append(data)
-    return out
+    return loc.entries(f"{audit_dir(name)}/verdicts")
 
 
 def audit_names(loc: Location) -> list[str]:

@@ -28,27 +28,16 @@ RATINGS = "human/ratings"  # the rating page's ratings, one create-once file eac
 
 def add_rating(bench: str | Path, row: dict) -> None:
     """Store one checked rating as given (a crash loses nothing given; raters never share a file)."""
-    import uuid
-    from datetime import datetime, timezone
-
     from handedit.storage.location import Location
 
-    now = datetime.now(timezone.utc)
-    rel = f"{RATINGS}/{now.strftime('%Y%m%dT%H%M%S.%f')}-{uuid.uuid4().hex[:12]}.json"
-    Location(str(bench)).create_json(rel, {**row, "time": now.isoformat()})
+    Location(str(bench)).add_entry(RATINGS, row)
 
 
 def read_ratings(bench: str | Path) -> list[dict]:
     """The page's ratings in the order given (a rater's later rating of an output replaces the earlier)."""
     from handedit.storage.location import Location
 
-    loc = Location(str(bench))
-    out = []
-    for name in sorted(loc.find(RATINGS)):
-        row = loc.read_json(f"{RATINGS}/{name}")
-        if row is not None:
-            out.append(row)
-    return out
+    return Location(str(bench)).entries(RATINGS)
 
 
 class BenchIOError(RuntimeError):

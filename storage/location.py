@@ -195,6 +195,29 @@ class Location:
     def create_json(self, rel: str, obj: Any) -> bool:
         return self.create(rel, json.dumps(obj, sort_keys=True, indent=1, default=str).encode())
 
+    # -- entry folders: one create-once JSON file per entry, read in the order given ----
+    def add_entry(self, rel_dir: str, obj: dict) -> dict:
+        """Add ``obj``, stamped with the time, as its own file under ``rel_dir`` (named by time
+        then a random suffix): written once, never rewritten, so a crash loses nothing already
+        added and several writers never share a file. Returns the stamped entry."""
+        import uuid
+        from datetime import datetime, timezone
+
+        now = datetime.now(timezone.utc)
+        stamped = {**obj, "time": now.isoformat()}
+        while not self.create_json(f"{rel_dir}/{now.strftime('%Y%m%dT%H%M%S.%f')}-{uuid.uuid4().hex[:12]}.json", stamped):
+            pass  # a 48-bit collision within the same microsecond: another suffix
+        return stamped
+
+    def entries(self, rel_dir: str) -> list[dict]:
+        """Every entry of ``rel_dir`` in the order added (file names sort by time)."""
+        out = []
+        for name in sorted(self.find(rel_dir)):
+            data = self.read_json(f"{rel_dir}/{name}")
+            if data is not None:
+                out.append(data)
+        return out
+
     # -- tables -------------------------------------------------------------------
     def write_table(self, rel: str, frame) -> None:
         buf = io.BytesIO()
