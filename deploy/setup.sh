@@ -51,4 +51,9 @@ fi
 # estimate_hands' models (Apache-2.0, ~12 MB out of a 36 MB wheel): once, into the user cache
 .venv/bin/handedit models fetch \
   || echo "warning: could not fetch the hand models; videos without keypoints stop at estimate_hands until \`handedit models fetch\` succeeds"
+# the test that loads an exported dataset with the official LeRobot (its own venv: its pins conflict)
+if [ -n "$extras" ]; then
+  bash deploy/lerobot-env.sh \
+    || echo "warning: could not set up LeRobot's venv; tests/test_export_lerobot.py will fail until \`bash deploy/lerobot-env.sh\` succeeds"
+fi
 echo "handedit is set up in $(pwd)/.venv"

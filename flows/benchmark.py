@@ -91,7 +91,7 @@ class StoreItems:
         self.held_back_unreviewed = 0
 
     def kept(self, clip: str, emb: str) -> np.ndarray | None:
-        from handedit.flows.release import pending_review
+        from handedit.storage.provenance import pending_review
         from handedit.storage.ledger import unit_sides
         from handedit.storage.provenance import read_records
 

@@ -4,7 +4,9 @@
                        frame x embodiment as a pair with its content key (from the chunk
                        records' digests, no pixels read), cut into shards at clip boundaries
     shards   (tasks)   one ``write-release-shard`` task per shard whose key the parent
-                       release does not already hold, on the Dask cluster
+                       release does not already hold, on the Dask cluster; with ``videos``,
+                       one ``write-release-videos`` task per clip x embodiment whose videos
+                       no earlier release wrote (content-keyed like shards)
     publish  (driver)  pairs.parquet, changelog, datasheet, then manifest.json, created
                        only if absent: the version becomes visible at once and only whole
 
@@ -32,9 +34,10 @@ from handedit.reasons import Reason
 from handedit.release import datasheet
 from handedit.release.samples import Pair, TARGET_SHARD_BYTES, changelog, content_key, cut_parts, pairs_per_shard, shard_key
 from handedit.storage import Location, StoreError, Unit, open_store, read_records
+from handedit.storage.provenance import pending_review
 from handedit.storage.integrity import require_complete
 from handedit.storage.ledger import read_ledger, status_counts, unit_sides
-from handedit.storage.releases import RELEASE_SCHEMA, latest, next_version, publish, read_pairs, read_release
+from handedit.storage.releases import RELEASE_SCHEMA, latest, next_version, publish, read_pairs, read_release, video_info_rel
 from handedit.storage.store import jsonable, now_iso, read_array
 from handedit.storage.summary import curated_clips
 
@@ -49,6 +52,8 @@ class ReleaseConfig(BaseModel):
     embodiments: list[str] = Field(default_factory=list, description="only these (default: every curated one)")
     target_shard_bytes: int = Field(TARGET_SHARD_BYTES, gt=0, description="~size of one WebDataset shard")
     cluster: ClusterConfig = ClusterConfig()
+    videos: bool = Field(False, description="also frame-aligned MP4s (source, pseudo-GT, robot mask) per clip x "
+                         "embodiment, beside the shards (storage.releases: videos/)")
     publish_unchanged: bool = Field(True, description="publish a new version even when its pairs and shards are the "
                                     "parent's (the scheduled release sets False: nothing changed, nothing published)")
 
@@ -140,17 +145,6 @@ def plan_pairs(loc: Location, root, clips: list[str], embodiments: list[str], ta
     return out, source
 
 
-def pending_review(records: dict) -> set[str]:
-    """Sides of a hand-arm sequence whose base waits for an operator (``review: manual``, not yet
-    decided with ``handedit review``): their pairs are held back from a release."""
-    out = set()
-    for rec in records.values():
-        for side, vb in ((rec.extra or {}).get("virtual_base") or {}).items():
-            if str((vb or {}).get("selected_by", "")).startswith("pending"):
-                out.add(side)
-    return out
-
-
 @flow(name="release")
 def release(cfg: ReleaseConfig) -> dict:
     from handedit.flows.curate import code_version
@@ -166,6 +160,7 @@ def release(cfg: ReleaseConfig) -> dict:
     # a parent's shard is reused only if its bytes were checked against the records when it was written
     reusable = {s["key"]: s for s in (parent_manifest or {}).get("shards", []) if s.get("verified")}
     pairs, sources, jobs, curated, left_out, audits = [], [], [], [], [], {}
+    video_jobs, videos = [], {}
     for store in cfg.sources:
         src = Location(store)
         root = open_store(src)
@@ -177,6 +172,13 @@ def release(cfg: ReleaseConfig) -> dict:
         source["left_out_by_audit"] = len(source["left_out_by_audit"])  # the ids and why: changelog.json
         audits.update({f"{src.url}#{name}": a for name, a in source["audits"].items()})
         sources.append(source)
+        if cfg.videos:
+            for job in plan_videos(cfg.out, src, root, got):
+                done = loc.read_json(video_info_rel(job.key))
+                if done and done.get("verified"):
+                    videos[job.key] = {**_video_entry(done), "reused": True}
+                else:
+                    video_jobs.append(job)
         for members in by_part(got).values():
             key = shard_key(members)
             pairs += [(p, key) for p in members]
@@ -187,17 +189,20 @@ def release(cfg: ReleaseConfig) -> dict:
 
     # a release is permanent: it keeps only links that outlive this command
     links = {"Prefect run": None if api_is_temporary() else run_url(), "Dask dashboard": None}
-    if jobs:
+    if jobs or video_jobs:
         with cfg.cluster.connect() as address:
             links["Dask dashboard"] = dashboard_link(address) if cfg.cluster.address else None
-            for res in write_shards.with_options(task_runner=task_runner(address))(jobs):
+            shard_res, video_res = write_shards.with_options(task_runner=task_runner(address))(jobs, video_jobs)
+            for res in shard_res:
                 shards[res["key"]] = {**_shard_entry(res), "reused": False}
+            for res in video_res:
+                videos[res["key"]] = {**_video_entry(res), "reused": False}
     used = list(dict.fromkeys(k for _, k in pairs))
     table = pd.DataFrame([{**p.meta(), "id": p.id, "sides": ",".join(p.sides), "shard": k} for p, k in pairs],
                          columns=["id", "clip", "embodiment", "frame", "sides", "track", "dataset", "task", "instruction",
                                   "reference", "content", "shard"])
     changes = changelog(parent_pairs, table)
-    if parent and not cfg.publish_unchanged and not jobs and not any(changes[k] for k in ("added", "removed", "changed")) \
+    if parent and not cfg.publish_unchanged and not jobs and not video_jobs and not any(changes[k] for k in ("added", "removed", "changed")) \
             and set(used) == set(reusable):
         note = f"nothing changed since {parent} (the same {len(table)} pairs in the same {len(used)} shards): no version published"
         logger.info(note)
@@ -216,8 +221,10 @@ def release(cfg: ReleaseConfig) -> dict:
         "schema": RELEASE_SCHEMA, "version": version, "parent": parent, "created": now_iso(), "code_version": code_version(),
         "links": links, "sources": sources, "counts": {"pairs": len(table), "shards": len(used), "shards_reused": sum(
             1 for k in used if shards[k]["reused"]), "added": len(changes["added"]), "removed": len(changes["removed"]),
-            "changed": len(changes["changed"]), "left_out_by_audit": len(left_out)},
+            "changed": len(changes["changed"]), "left_out_by_audit": len(left_out),
+            **({"videos": len(videos), "videos_reused": sum(1 for v in videos.values() if v["reused"])} if cfg.videos else {})},
         "shards": [shards[key] for key in used],
+        **({"videos": sorted(videos.values(), key=lambda v: (v["clip"], v["embodiment"]))} if cfg.videos else {}),
     })
     if not publish(loc, version, manifest):
         raise StoreError(f"another release published {version} of {cfg.out} while this one ran; run `handedit release` "
@@ -247,12 +254,43 @@ def _publish_artifact(loc: Location, manifest: dict, changes: dict) -> None:
 
 
 @flow(name="release-shards")
-def write_shards(jobs: list) -> list[dict]:
-    """One task per new shard on the run's Dask cluster; a shard that fails after its
-    retries fails the release (nothing is published)."""
-    from handedit.tasks.release import write_release_shard
+def write_shards(jobs: list, video_jobs: list = ()) -> tuple[list[dict], list[dict]]:
+    """One task per new shard (and per new clip x embodiment's videos) on the run's Dask
+    cluster; one that fails after its retries fails the release (nothing is published)."""
+    from handedit.tasks.release import write_release_shard, write_release_videos
 
-    return [f.result() for f in [write_release_shard.submit(j) for j in jobs]]
+    shards = [write_release_shard.submit(j) for j in jobs]
+    videos = [write_release_videos.submit(j) for j in video_jobs]
+    return [f.result() for f in shards], [f.result() for f in videos]
+
+
+VIDEO_SCHEMA = 1
+
+
+def plan_videos(out: str, src: Location, root, pairs: list[Pair]) -> list:
+    """One ``VideoJob`` per clip x embodiment with pairs, keyed by the content of every frame
+    its videos show (the chunk records' digests) and the frames it keeps."""
+    from handedit.export.video import PAIR_SPECS
+    from handedit.storage.episodes import content_key as episode_key
+    from handedit.tasks.release import VideoJob
+
+    kept: dict[tuple[str, str], list[int]] = {}
+    for p in pairs:
+        kept.setdefault((p.clip, p.embodiment), []).append(p.frame)
+    jobs = []
+    options = {"schema": VIDEO_SCHEMA, "specs": {k: vars(v) for k, v in PAIR_SPECS.items()}}
+    for (clip, emb), frames in kept.items():
+        info = dict(root[Unit("ingest", clip).path].attrs.get("info") or {})
+        frames = sorted(frames)
+        key = hashlib.sha256(f"{episode_key(root, clip, emb, options, [])}:{frames}".encode()).hexdigest()[:32]
+        jobs.append(VideoJob(out, src.store_url, key, clip, emb, int(info["n_frames"]), float(info.get("fps") or 30.0),
+                             tuple(frames)))
+    return jobs
+
+
+def _video_entry(info: dict) -> dict:
+    return {**{k: info[k] for k in ("key", "clip", "embodiment", "frames", "fps", "files")},
+            "kept_frames": len(info["kept"]), "index": video_info_rel(info["key"]), "verified": bool(info.get("verified"))}
 
 
 SHARD_FIELDS = ("key", "path", "sha256", "bytes", "pairs")

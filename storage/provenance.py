@@ -155,3 +155,14 @@ def is_current(record: ChunkRecord | dict | None, key: str) -> bool:
     if isinstance(record, dict):
         return record.get("key") == key and record.get("outcome") == "ok"
     return record is not None and record.key == key and record.outcome == "ok"
+
+
+def pending_review(records: dict) -> set[str]:
+    """Sides of a hand-arm sequence whose base waits for an operator (``review: manual``, not yet
+    decided with ``handedit review``): their pairs are held back from a release."""
+    out = set()
+    for rec in records.values():
+        for side, vb in ((rec.extra or {}).get("virtual_base") or {}).items():
+            if str((vb or {}).get("selected_by", "")).startswith("pending"):
+                out.add(side)
+    return out

@@ -4,6 +4,11 @@
       shards/<key>.tar                       WebDataset shards, named by the content key of the
                                              pairs they hold; shared by every release, never rewritten
       shards/<key>.json                      its sha256, size and pairs, written once the shard is whole
+      videos/<key>/source.mp4, pseudo_gt.mp4, robot_mask.mp4
+                                             ``--videos``: one clip x embodiment, every frame of the
+                                             clip in order (frame-aligned), named by content key
+      videos/<key>.json                      its files' sha256 and sizes, frames, the kept-frame
+                                             index: written once the videos are whole
       v0001/pairs.parquet                    every pair of the release with its metadata and shard
       v0001/changelog.json, changelog.md     added / removed / changed pairs against the parent
       v0001/datasheet.json, datasheet.md     counts, kept rates, rejection breakdown
@@ -24,6 +29,7 @@ from handedit.storage.location import Location
 
 RELEASE_SCHEMA = 1
 SHARDS_DIR = "shards"
+VIDEOS_DIR = "videos"
 _VERSION = re.compile(r"^v(\d{4,})$")
 
 
@@ -44,6 +50,14 @@ def shard_rel(key: str) -> str:
 def shard_info_rel(key: str) -> str:
     """The sidecar written after a shard is complete: its hash, size and pair count."""
     return f"{SHARDS_DIR}/{key}.json"
+
+
+def video_rel(key: str, name: str) -> str:
+    return f"{VIDEOS_DIR}/{key}/{name}.mp4"
+
+
+def video_info_rel(key: str) -> str:
+    return f"{VIDEOS_DIR}/{key}.json"
 
 
 def versions(loc: Location) -> list[str]:

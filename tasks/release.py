@@ -77,3 +77,57 @@ def write_shard(job: ShardJob) -> dict:
       retry_condition_fn=retry_transient, persist_result=False, cache_policy=NO_CACHE)
 def write_release_shard(job: ShardJob) -> dict:
     return write_shard(job)
+
+
+
+@dataclass(frozen=True)
+class VideoJob:
+    out: str  # the releases location
+    store: str  # the curated store's URL
+    key: str
+    clip: str
+    embodiment: str
+    n_frames: int
+    fps: float
+    kept: tuple[int, ...]  # the clip's frames this release holds as pairs
+
+
+def write_videos(job: VideoJob) -> dict:
+    """One clip x embodiment's source, pseudo-GT and robot-mask videos (every frame of the clip,
+    in order), encoded into a local temporary folder, hashed, then moved or uploaded whole; the
+    sidecar last, so a sidecar vouches for complete videos (an interrupted attempt is redone)."""
+    import shutil
+
+    from handedit.export.video import PAIR_SPECS
+    from handedit.storage.releases import video_info_rel, video_rel
+    from handedit.tasks.export import PAIR_VIDEOS, EpisodeJob, encode_episode
+
+    loc = Location(job.out)
+    sidecar = video_info_rel(job.key)
+    done = loc.read_json(sidecar)
+    if done and done.get("verified"):
+        return {**done, "written": False}
+    tmp = tempfile.mkdtemp(prefix="release-videos-")
+    try:
+        files = {}
+        root = open_root(job.store)
+        sides = tuple(root[Unit("composite", job.clip, embodiment=job.embodiment).path].attrs.get("hands") or ["right"])
+        for name in PAIR_VIDEOS:
+            path = os.path.join(tmp, f"{name}.mp4")
+            encode_episode(EpisodeJob(job.store, job.clip, job.embodiment, job.n_frames, job.fps, ((name, path),),
+                                      PAIR_SPECS[name], sides))
+            files[name] = {"path": video_rel(job.key, name), "sha256": file_sha256(path), "bytes": os.path.getsize(path)}
+        for name, f in files.items():
+            loc.put_file(os.path.join(tmp, f"{name}.mp4"), f["path"])
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    info = {"key": job.key, "clip": job.clip, "embodiment": job.embodiment, "frames": job.n_frames, "fps": job.fps,
+            "kept": list(job.kept), "files": files, "verified": True}
+    loc.write_json(sidecar, info)
+    return {**info, "written": True}
+
+
+@task(name="write-release-videos", task_run_name="release-videos[{job.clip}/{job.embodiment}]", retries=2,
+      retry_delay_seconds=[2.0, 10.0], retry_condition_fn=retry_transient, persist_result=False, cache_policy=NO_CACHE)
+def write_release_videos(job: VideoJob) -> dict:
+    return write_videos(job)

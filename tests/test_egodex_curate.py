@@ -172,3 +172,36 @@ def test_status_json_schema(run, capsys):
     assert ("retarget", "left") in sides and ("retarget", "right") in sides and ("restore_background", None) in sides
     assert all(set(r) == {"stage", "reason", "count"} for r in data["rejections"])
     assert {"stage": "ingest", "reason": "SOURCE_UNREADABLE", "count": 3} in data["rejections"]
+
+
+def test_a_bimanual_clip_exports_both_sides_to_lerobot(run, tmp_path, dask_cluster):
+    """Issue 35: the hand-arm's episodes of both shared EgoDex clips, loaded by the official
+    LeRobot: both sides' actuated joints, each side's wrist where its human wrist was."""
+    from test_export_lerobot import export, load_with_lerobot
+
+    config, _, _ = run
+    out = tmp_path / "xarm_ability"
+    assert export(config.out, out, emb="xarm_ability", address=dask_cluster.scheduler_address) == 0
+    root = open_store(config.out)
+    ret = root[Unit("retarget", GOOD[0], embodiment="xarm_ability").path]
+    joints = list(ret.attrs["joint_names"])
+    T = WINDOW[1] - WINDOW[0]
+    meta, got = load_with_lerobot(out, tmp_path / "side", list(range(T)))
+    assert meta["num_episodes"] == 2 and meta["num_frames"] == 2 * T
+    assert meta["features"]["observation.state"]["names"] == [f"{s}_{j}" for s in ("left", "right") for j in joints]
+    assert meta["tasks"][0] and "robot" not in meta["tasks"][0].lower()  # EgoDex's own task description
+    import pandas as pd
+
+    first = pd.read_parquet(out / "meta" / "episodes" / "chunk-000" / "file-000.parquet")["handedit/clip"][0]
+    assert first in GOOD  # the loaded indices 0..T-1 are this episode's frames
+    hs = root[Unit("retarget", first, embodiment="xarm_ability").path]["hand_status"][:]
+    qpos = root[Unit("retarget", first, embodiment="xarm_ability").path]["qpos"][:]
+    kp = root[Unit("registration", first).path]["keypoints"][:]
+    kept = root[Unit("qc", first, embodiment="xarm_ability").path]["status"][:] == Reason.OK
+    assert (got["valid"] == kept).all() and (got["hand_valid"][kept] == (hs[kept] == Reason.OK)).all()
+    for k in range(2):
+        ok = hs[:, k] == Reason.OK
+        assert ok.sum() >= 8
+        np.testing.assert_allclose(got["observation.state"][ok][:, k * len(joints):(k + 1) * len(joints)], qpos[ok, k], atol=1e-6)
+        wrist = got["observation.wrist_pose"][ok][:, 7 * k:7 * k + 3]
+        assert np.median(np.linalg.norm(wrist - kp[ok, k, 0], axis=1)) < 0.03  # metres

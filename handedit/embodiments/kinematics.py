@@ -163,6 +163,10 @@ class Kinematics:
             self._fns[key] = ca.Function(f"jac_{_safe(link)}", [self._q], [ca.vertcat(Jp, Jw)])
         return self._fns[key]
 
+    def mimic_joints(self) -> dict[str, tuple[str, float, float]]:
+        """Joints that follow another (name -> (source joint, multiplier, offset)): not in ``q``."""
+        return {j.name: j.mimic for j in self._by_name.values() if j.mimic is not None}
+
     # -- numeric --------------------------------------------------------------------
     def fk(self, q: np.ndarray, link: str) -> np.ndarray:
         return np.asarray(self.fk_function(link)(np.asarray(q, float)), dtype=float)

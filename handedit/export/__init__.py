@@ -1,0 +1,1 @@
+"""Curated runs in other formats: LeRobot datasets (``lerobot``), frame-aligned videos (``video``)."""
