@@ -28,23 +28,7 @@ os.environ.setdefault("HANDEDIT_ASSET_DIRS", "/work/shared/assets/robots")
 
 from handedit.embodiments import EmbodimentError, list_embodiments  # noqa: E402
 from handedit.retarget import RetargetConfig, get_retargeter, retarget  # noqa: E402
-
-
-def synthetic_keypoints(n_clips: int, n_frames: int) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
-    """(name, keypoints (T,21,3) camera frame, valid, world_from_camera) without rendering pixels."""
-    from handedit.sources.synthetic import frame_keypoints, frame_state, make_clip_specs, make_plan
-
-    out = []
-    for spec in make_clip_specs(n_clips, n_frames=n_frames):
-        plan = make_plan(spec)
-        kps, wfc = [], []
-        for t in range(n_frames):
-            st = frame_state(plan, t, n_frames)
-            cw = np.linalg.inv(st.world_from_camera)
-            kps.append(frame_keypoints(plan, st) @ cw[:3, :3].T + cw[:3, 3])
-            wfc.append(st.world_from_camera)
-        out.append((spec.clip_id, np.array(kps), np.ones((n_frames, 21), bool), np.array(wfc)))
-    return out
+from handedit.retarget.quality import residual_stats, synthetic_keypoints  # noqa: E402
 
 
 BUILD_S: dict[str, float] = {}
@@ -70,19 +54,13 @@ def bench_hand(emb: str, clips, cfg: RetargetConfig) -> dict:
     t0 = time.perf_counter()
     rt = get_retargeter(emb, cfg)
     build = BUILD_S.get(emb, 0.0) if cfg == RetargetConfig() else time.perf_counter() - t0
-    tips, wrists, secs, n, viol, rej = [], [], 0.0, 0, 0, 0
+    results, secs = [], 0.0
     for _, kp, valid, _ in clips:
         t0 = time.perf_counter()
-        r = retarget(kp, valid, emb, cfg)
+        results.append(retarget(kp, valid, emb, cfg))
         secs += time.perf_counter() - t0
-        n += len(kp)
-        tips.append(r.fingertip_error_mm[np.isfinite(r.fingertip_error_mm)])
-        wrists.append(r.wrist_error_mm[np.isfinite(r.wrist_error_mm)])
-        viol += int(np.sum((r.qpos < rt.lower) | (r.qpos > rt.upper)))
-        rej += int(np.sum(r.status >= 100))
-    tip, wr = np.concatenate(tips), np.concatenate(wrists)
-    return {"build_s": build, "ms": 1000 * secs / max(n, 1), "tip_mean": tip.mean(), "tip_p95": np.percentile(tip, 95),
-            "wrist_mean": wr.mean(), "violations": viol, "rejected": rej, "frames": n}
+    stats = residual_stats(results, rt.lower, rt.upper)
+    return {"build_s": build, "ms": 1000 * secs / max(stats["frames"], 1), **stats}
 
 
 def print_table(title: str, rows: dict[str, dict]) -> None:

@@ -168,6 +168,9 @@ class CurateConfig(BaseModel):
     out: Url = Field(description="the run folder or its store: runs/demo, runs/demo/handedit.zarr, s3://bucket/prefix")
     clips: list[SourceSpec] = Field(default_factory=list, description="explicit clips")
     sources: list[TreeSpec] = Field(default_factory=list, description="dataset trees, e.g. {kind: egodex, root: DIR}")
+    robots: list[str] = Field(default_factory=list, description="folders of robot files (one YAML file per hand, arm or "
+                              "hand-arm; see handedit.embodiments.robot_files) joining the roster for this run and its "
+                              "workers, like $HANDEDIT_ROBOT_DIRS")
     embodiments: list[str] = ["allegro"]
     frames_per_chunk: int = Field(16, ge=1, description="frames per chunk; fixed per store")
     shard_size: int = Field(64, ge=1, description="clips per shard: a shard is one flow run and one claim")
@@ -199,6 +202,16 @@ class CurateConfig(BaseModel):
         default_factory=list,
         description="drills/tests: 'stage:clip[:embodiment]' globs whose chunks raise InjectedFault",
     )
+
+    @field_validator("robots")
+    @classmethod
+    def _robot_dirs(cls, dirs: list[str]) -> list[str]:
+        """Before ``embodiments`` is checked: its keys may be in these folders."""
+        from handedit.embodiments.robot_files import add_robot_dirs
+
+        dirs = [str(Path(d).expanduser().resolve()) for d in dirs]
+        add_robot_dirs(dirs)
+        return dirs
 
     @field_validator("embodiments")
     @classmethod

@@ -35,7 +35,7 @@ from prefect import flow, get_run_logger
 from tqdm import tqdm
 
 import handedit
-from handedit.digests import model_digests as stage_model_digests, robot_digest
+from handedit.digests import embodiment_digest, model_digests as stage_model_digests
 from handedit.embodiments import EmbodimentError, describe_embodiment, get_embodiment, resolve_urdf
 from handedit.flows import progress as progress_of
 from handedit.flows.api import run_url
@@ -84,7 +84,7 @@ class EmbodimentPlan:
     joint_names: list[str]
     error: str | None = None
     reason: int = int(Reason.OK)
-    robot_digest: str = ""  # content of the resolved (or composed) URDF and of every mesh it names
+    robot_digest: str = ""  # content of the resolved (or composed) URDF, every mesh it names, and its robot files
 
 
 def plan_embodiments(ids: list[str]) -> list[EmbodimentPlan]:
@@ -95,7 +95,8 @@ def plan_embodiments(ids: list[str]) -> list[EmbodimentPlan]:
         track = get_embodiment(emb_id).track
         try:
             _, joints = describe_embodiment(emb_id)
-            robot = robot_digest(resolve_urdf(get_embodiment(emb_id)))
+            emb = get_embodiment(emb_id)
+            robot = embodiment_digest(resolve_urdf(emb), emb.files)
             plans.append(EmbodimentPlan(emb_id, track, joints, robot_digest=robot))
         except EmbodimentError as exc:
             plans.append(EmbodimentPlan(emb_id, track, [], f"{type(exc).__name__}: {exc}", int(exc.reason)))

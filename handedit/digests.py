@@ -67,3 +67,12 @@ def robot_digest(urdf_path: str | Path) -> str:
         resolved = yourdfpy.filename_handler_magic(name, dir=str(urdf_path.parent))
         h.update(f"\n{name}={file_digest(resolved)}".encode())
     return h.hexdigest()
+
+
+def embodiment_digest(urdf_path: str | Path, robot_files: tuple[str, ...] = ()) -> str:
+    """``robot_digest`` and the content of the robot files the embodiment is made of (its
+    keypoints, wrist calibration, colours): editing a robot file runs its stages again."""
+    h = hashlib.sha256(robot_digest(urdf_path).encode())
+    for f in robot_files:
+        h.update(f"\n{Path(f).name}={file_digest(f)}".encode())
+    return h.hexdigest()

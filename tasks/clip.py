@@ -80,6 +80,7 @@ class WalkConfig(BaseModel):
     model_config = ConfigDict(extra="ignore")
 
     frames_per_chunk: int = 16
+    robots: list[str] = []  # the run's robot-file folders (``CurateConfig.robots``)
     handoff_mib: int = Field(512, ge=0)
     reuse_mib: int = Field(512, ge=0)
     inject_faults: list[str] = []
@@ -426,8 +427,15 @@ def run_clip(job: ClipJob) -> dict:
 
 def run_embodiment(job: EmbodimentJob) -> dict:
     """The body of ``curate_embodiment``."""
-    t0 = time.perf_counter()
+    from handedit.embodiments.robot_files import robot_dirs_added
+
     config = _config(job)
+    with robot_dirs_added(config.robots):  # this worker may not have started with the run's robot folders
+        return _run_embodiment(job, config)
+
+
+def _run_embodiment(job: EmbodimentJob, config: WalkConfig) -> dict:
+    t0 = time.perf_counter()
     result = WalkResult(job.clip)
     root = open_root(job.store)
     plan = stored_plan(root, job.clip)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from handedit.embodiments.asset_table import FOLDERS
+from handedit.embodiments.fetch import FOLDERS
 from handedit.embodiments.fetch import build_table, fetch
 
 

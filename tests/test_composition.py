@@ -13,17 +13,17 @@ from handedit.embodiments.compose import (
     MOUNT_JOINT,
     compose_embodiment,
     compose_urdf,
-    matrix_to_xyz_rpy,
     mount_transform,
     nominal_reach,
 )
 from handedit.embodiments.kinematics import get_kinematics
-from handedit.embodiments.urdf import load_urdf
+from handedit.embodiments.urdf import load_urdf, matrix_to_xyz_rpy
 
+# (arm key, hand key): each file's first (dex-urdf) URDF candidate, which carries the exact mount
 ASSEMBLIES = {
-    "ur5e_shadow": (roster._UR5E_DEX, roster._SHADOW),
-    "xarm7_ability": (roster._XARM7_DEX, roster._ABILITY),
-    "rm75_inspire": (roster._RM75_DEX, roster._INSPIRE),
+    "ur5e_shadow": (roster.arm_spec("ur5").assets[0], roster.hand_spec("shadow").assets[0]),
+    "xarm7_ability": (roster.arm_spec("xarm7").assets[0], roster.hand_spec("ability").assets[0]),
+    "rm75_inspire": (roster.arm_spec("rm75").assets[0], roster.hand_spec("inspire").assets[0]),
 }
 
 

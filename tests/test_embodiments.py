@@ -36,8 +36,11 @@ def assets(monkeypatch, robots_dir: Path) -> Path:
 
 
 def test_roster_ids_and_fields():
+    from handedit.embodiments.robot_files import BUILTIN
+
     ids = [e.id for e in list_embodiments()]
-    assert set(HAND_IDS) <= set(ids) and len(ids) == len(set(ids)) == 26
+    files = [p for d in ("hands", "hand_arms") for p in (BUILTIN / d).glob("*.yaml")]
+    assert set(HAND_IDS) <= set(ids) and len(ids) == len(set(ids)) == len(files)
     assert get_embodiment("inspire").name == "RH56DFX"
     assert get_embodiment("schunk_svh").name == "Schunk SVH"
     tracks = [e.track for e in list_embodiments()]

@@ -88,7 +88,10 @@ def _package_urdfs() -> list[Path]:
     from handedit.embodiments import roster
 
     out = []
-    for a in (roster._ALLEGRO_ERD, roster._PANDA_ERD, roster._UR5_ERD, roster._XARM7_ERD):
+    package = [a for spec in (roster.hand_spec("allegro"), roster.arm_spec("panda"), roster.arm_spec("ur5"), roster.arm_spec("xarm7"))
+               for a in spec.assets if a.source == "package"]
+    assert len(package) == 4
+    for a in package:
         p = roster._package_file(a.package, a.path)
         assert p is not None, f"{a.package} does not ship {a.path}"
         out.append(p)

@@ -336,12 +336,14 @@ def test_jaka_joint_caps_are_blue_faces_of_its_grey_links(robots_dir, monkeypatc
     """The frozen description's blue joint caps: ``Link_k@caps`` splits each STL link mesh into
     the faces square to a joint axis near it (blue) and the rest (metallic grey)."""
     from handedit.embodiments import get_embodiment, render_materials, resolve_urdf
-    from handedit.embodiments.roster import GRAY, JAKA_BLUE
+    from handedit.embodiments.roster import arm_spec
     from handedit.render.model import build_model, srgb_to_linear
 
     monkeypatch.setenv("HANDEDIT_ASSET_DIRS", str(robots_dir))
     emb = get_embodiment("jaka_zu7_dexhand021")
     mats = render_materials(emb)
+    JAKA_BLUE, GRAY = arm_spec("jaka_zu7").materials[r"Link_[1-6]@caps"], arm_spec("jaka_zu7").materials[r".*"]  # its arm file
+    assert JAKA_BLUE[2] > 0.5 > JAKA_BLUE[0] and max(GRAY[:3]) - min(GRAY[:3]) < 0.05  # blue caps, grey links
     assert mats[r"Link_3@caps"] == JAKA_BLUE and mats[r"Link_3"] == GRAY and not any(k.startswith("r_f_") and k.endswith("@caps") for k in mats)
     model = build_model(resolve_urdf(emb), materials=mats)
     blue, grey = srgb_to_linear(JAKA_BLUE), srgb_to_linear(GRAY)

@@ -53,49 +53,18 @@ import numpy as np
 from lxml import etree
 
 from handedit.embodiments.errors import BrokenUrdf, EmbodimentError
-from handedit.embodiments.urdf import resolve_mesh_filename
+from handedit.cache import cache_root
+from handedit.embodiments.urdf import absolutize_meshes, matrix_to_xyz_rpy, parse_urdf_xml
 from handedit.files import atomic_write
 
-CACHE_ENV = "HANDEDIT_CACHE_DIR"
 MOUNT_JOINT = "handedit_mount"
 CLASH_PREFIX = "hand_"
-
-
-def cache_root() -> Path:
-    """``$HANDEDIT_CACHE_DIR`` or ``~/.cache/handedit``: composed, derived and mirrored URDFs
-    and fetched assets live below it."""
-    return Path(os.environ.get(CACHE_ENV) or str(Path.home() / ".cache" / "handedit")).expanduser()
 
 
 def _cache_dir() -> Path:
     d = cache_root() / "composed"
     d.mkdir(parents=True, exist_ok=True)
     return d
-
-
-def matrix_to_xyz_rpy(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """URDF origin (xyz, rpy; R = Rz(y) Ry(p) Rx(r)) of a rigid 4x4."""
-    R = np.asarray(T, float)[:3, :3]
-    pitch = np.arctan2(-R[2, 0], np.hypot(R[0, 0], R[1, 0]))
-    if np.hypot(R[0, 0], R[1, 0]) < 1e-12:  # gimbal lock: put everything into roll
-        roll, yaw = np.arctan2(-R[1, 2], R[1, 1]), 0.0
-    else:
-        roll, yaw = np.arctan2(R[2, 1], R[2, 2]), np.arctan2(R[1, 0], R[0, 0])
-    return np.asarray(T, float)[:3, 3], np.array([roll, pitch, yaw])
-
-
-def _parse(path: Path) -> etree._ElementTree:
-    try:
-        return etree.parse(str(path), etree.XMLParser(remove_blank_text=True, remove_comments=True))
-    except etree.XMLSyntaxError as e:
-        raise BrokenUrdf(f"URDF {path} is not valid XML ({e}). Restore the file from its source.") from e
-
-
-def _absolutize_meshes(root: etree._Element, urdf_path: Path) -> None:
-    for mesh in root.iter("mesh"):
-        fn = mesh.get("filename")
-        if fn:
-            mesh.set("filename", str(resolve_mesh_filename(fn, urdf_path)))
 
 
 def _prune(root: etree._Element, drop_links: tuple[str, ...], path: Path) -> None:
@@ -141,7 +110,7 @@ def compose_urdf(
         if not p.is_file():
             raise EmbodimentError(f"URDF file {p} does not exist; provide it or fix HANDEDIT_ASSET_DIRS.")
     T = np.asarray(ee_from_hand_root, float).reshape(4, 4)
-    arm, hand = _parse(arm_urdf).getroot(), _parse(hand_urdf).getroot()
+    arm, hand = parse_urdf_xml(arm_urdf).getroot(), parse_urdf_xml(hand_urdf).getroot()
     _prune(arm, tuple(drop_links), arm_urdf)
     arm_links = {l.get("name") for l in arm.findall("link")}
     if ee_link not in arm_links:
@@ -159,8 +128,8 @@ def compose_urdf(
     mat_map = {m.get("name"): (CLASH_PREFIX + m.get("name") if m.get("name") in arm_mats else m.get("name"))
                for m in hand.findall("material")}
 
-    _absolutize_meshes(arm, arm_urdf)
-    _absolutize_meshes(hand, hand_urdf)
+    absolutize_meshes(arm, arm_urdf)
+    absolutize_meshes(hand, hand_urdf)
     for l in hand.iter("link"):
         l.set("name", link_map[l.get("name")])
     for j in hand.findall("joint"):
@@ -317,7 +286,7 @@ def _compose_cached(embodiment_id: str, stamp: tuple, _dirs: tuple) -> ComposedE
 
 
 def _joints_after_prune(arm) -> list:
-    root = _parse(arm.path).getroot()
+    root = parse_urdf_xml(arm.path).getroot()
     _prune(root, arm.asset.drop_links, arm.path)
     return root.findall("joint")
 
@@ -326,9 +295,9 @@ def arm_reach_urdf(arm) -> Path:
     """The arm alone (pruned) as a URDF, for its reach: an unpruned gripper would add length."""
     if not arm.asset.drop_links:
         return arm.path
-    root = _parse(arm.path).getroot()
+    root = parse_urdf_xml(arm.path).getroot()
     _prune(root, arm.asset.drop_links, arm.path)
-    _absolutize_meshes(root, arm.path)
+    absolutize_meshes(root, arm.path)
     text = etree.tostring(root, xml_declaration=True, encoding="utf-8")
     out = _cache_dir() / f"arm-{hashlib.sha256(text).hexdigest()[:16]}.urdf"
     if not out.is_file():

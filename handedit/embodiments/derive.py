@@ -33,7 +33,8 @@ def derived_urdf(path: Path, asset) -> Path:
     """The asset's URDF with its couplings and hidden visuals applied (``path`` if none)."""
     if not needs_derivation(asset):
         return path
-    from handedit.embodiments.compose import _absolutize_meshes, _parse, cache_root
+    from handedit.cache import cache_root
+    from handedit.embodiments.urdf import absolutize_meshes, parse_urdf_xml
 
     st = path.stat()
     key = hashlib.blake2b(repr((str(path), st.st_size, st.st_mtime_ns, asset.couplings, asset.hidden_visuals,
@@ -42,9 +43,9 @@ def derived_urdf(path: Path, asset) -> Path:
     out = cache_root() / "derived" / f"{path.stem}-{key}.urdf"
     if out.is_file():
         return out
-    tree = _parse(path)
+    tree = parse_urdf_xml(path)
     root = tree.getroot()
-    _absolutize_meshes(root, path)
+    absolutize_meshes(root, path)
     joints = {j.get("name"): j for j in root.findall("joint")}
     for name, source, multiplier, offset in asset.couplings:
         if name not in joints or source not in joints:

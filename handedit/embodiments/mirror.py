@@ -37,7 +37,8 @@ from pathlib import Path
 import numpy as np
 from lxml import etree
 
-from handedit.embodiments.compose import _absolutize_meshes, _parse, cache_root, matrix_to_xyz_rpy
+from handedit.cache import cache_root
+from handedit.embodiments.urdf import absolutize_meshes, matrix_to_xyz_rpy, parse_urdf_xml
 from handedit.files import atomic_write
 
 ROOT_MIRROR = np.diag([1.0, -1.0, 1.0, 1.0])
@@ -93,8 +94,8 @@ def mirror_tree(root: etree._Element) -> None:
 def mirror_urdf(urdf_path: str | os.PathLike) -> Path:
     """The mirrored (left) twin of a URDF file, written once to the cache (see module doc)."""
     path = Path(urdf_path).resolve()
-    root = _parse(path).getroot()
-    _absolutize_meshes(root, path)
+    root = parse_urdf_xml(path).getroot()
+    absolutize_meshes(root, path)
     mirror_tree(root)
     root.set("name", f"{root.get('name', 'robot')}__mirrored")
     text = etree.tostring(root, pretty_print=True, xml_declaration=True, encoding="utf-8")

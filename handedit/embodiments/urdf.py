@@ -109,3 +109,32 @@ def load_urdf(path: str | os.PathLike, *, load_meshes: bool = True) -> yourdfpy.
             f"HANDEDIT_ASSET_DIRS) or fix the path."
         )
     return _load_cached(str(p), p.stat().st_mtime_ns, load_meshes)
+
+
+def parse_urdf_xml(path: Path) -> etree._ElementTree:
+    """A URDF as an XML tree (for writing derived URDFs), or ``BrokenUrdf`` naming the file."""
+    try:
+        return etree.parse(str(path), etree.XMLParser(remove_blank_text=True, remove_comments=True))
+    except etree.XMLSyntaxError as e:
+        raise BrokenUrdf(f"URDF {path} is not valid XML ({e}). Restore the file from its source.") from e
+
+
+def absolutize_meshes(root: etree._Element, urdf_path: Path) -> None:
+    """Mesh references made absolute, so a derived URDF written elsewhere finds them."""
+    for mesh in root.iter("mesh"):
+        fn = mesh.get("filename")
+        if fn:
+            mesh.set("filename", str(resolve_mesh_filename(fn, urdf_path)))
+
+
+def matrix_to_xyz_rpy(T) -> tuple:
+    """URDF origin (xyz, rpy; R = Rz(y) Ry(p) Rx(r)) of a rigid 4x4."""
+    import numpy as np
+
+    R = np.asarray(T, float)[:3, :3]
+    pitch = np.arctan2(-R[2, 0], np.hypot(R[0, 0], R[1, 0]))
+    if np.hypot(R[0, 0], R[1, 0]) < 1e-12:  # gimbal lock: put everything into roll
+        roll, yaw = np.arctan2(-R[1, 2], R[1, 1]), 0.0
+    else:
+        roll, yaw = np.arctan2(R[2, 1], R[2, 2]), np.arctan2(R[1, 0], R[0, 0])
+    return np.asarray(T, float)[:3, 3], np.array([roll, pitch, yaw])

@@ -45,7 +45,7 @@ class ModelFetchError(RuntimeError):
 
 
 def default_model_dir() -> Path:
-    from handedit.embodiments.compose import cache_root
+    from handedit.cache import cache_root
 
     return cache_root() / "models" / "mediapipe-hands-0.10.21"
 

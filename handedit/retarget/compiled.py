@@ -27,7 +27,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from handedit.embodiments.compose import cache_root
+from handedit.cache import cache_root
 
 log = logging.getLogger(__name__)
 FLAGS = ("-O1", "-fPIC", "-shared")
