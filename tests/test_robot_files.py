@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 import yaml
 
@@ -113,6 +114,12 @@ def test_a_robot_added_by_one_file_curates_a_demo_clip(tmp_path, monkeypatch, ca
     assert "My Hand" in line and str(path) in line
     assert main(["embodiments", "show", "allegro", "--file"]) == 0
     assert capsys.readouterr().out.strip() == str(BUILTIN / "hands" / "allegro.yaml")
+    # and the release, like a built-in robot's (the folder in $HANDEDIT_ROBOT_DIRS)
+    rel = tmp_path / "releases"
+    assert main(["release", "--from", str(tmp_path / "run"), "--out", str(rel), "--address", dask_cluster.scheduler_address]) == 0
+    pairs = pd.read_parquet(rel / "v0001" / "pairs.parquet")
+    mine = pairs[pairs["embodiment"] == "myhand"]
+    assert len(mine) == kept.sum() and mine["instruction"].str.contains("My Hand").all()
 
 
 def test_a_bad_robot_file_is_one_message_naming_the_file_and_field(tmp_path, monkeypatch):
