@@ -154,7 +154,10 @@ def cmd_curate(args: argparse.Namespace) -> int:
                        *(f"the {t.kind} tree {t.root}" for t in config.sources)])
     print(f"curating {what} x {len(config.embodiments)} embodiment(s) into {config.out} "
           f"(shards of {config.shard_size} clips)")
-    where = config.cluster.address or f"a local Dask cluster ({config.cluster.n_workers} worker processes)"
+    c = config.cluster
+    where = c.address or (f"a {c.cluster_class.rsplit('.', 1)[-1]} started for the run "
+                          + (f"(adaptive: {c.adapt})" if c.adapt else f"({c.n_workers} jobs)") if c.cluster_class
+                          else f"a local Dask cluster ({c.n_workers} worker processes)")
     print(f"running on {where}; the Dask dashboard link follows when the cluster is up")
     from handedit.flows.config import PreflightError
     from handedit.storage import StoreError

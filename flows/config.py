@@ -136,6 +136,8 @@ class ClusterConfig(BaseModel):
             cluster = getattr(importlib.import_module(mod), name)(**self.cluster_kwargs)
             if self.adapt:
                 cluster.adapt(**self.adapt)
+            elif not getattr(cluster, "workers", None):  # a job-queue cluster starts with none: n_workers jobs
+                cluster.scale(self.n_workers)
         else:
             import dask
             from distributed import LocalCluster

@@ -61,7 +61,7 @@ def run_links(dashboard: str | None, prefect_run: str | None, local_cluster: boo
     from handedit.flows.api import api_is_temporary
 
     gone = "gone when this command exits"
-    return {"Dask dashboard": {"url": dashboard, "note": f"this run's LocalCluster: {gone}" if local_cluster and dashboard else ""},
+    return {"Dask dashboard": {"url": dashboard, "note": f"this run's own cluster: {gone}" if local_cluster and dashboard else ""},
             "Prefect run": {"url": prefect_run, "note": f"a temporary Prefect API: {gone}" if api_is_temporary() and prefect_run
                             else ""}}
 
