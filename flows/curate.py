@@ -335,6 +335,10 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
         if progress:
             tqdm.write("\n".join(f"{name + ':':<16}{e['url'] or '(not available)'}{'  (' + e['note'] + ')' if e['note'] else ''}"
                                  for name, e in links.items()))
+        from handedit.flows.preflight import check_workers
+
+        # each worker checks the store, the Prefect API and the robots from where it runs
+        check_workers(address, loc.store_url, [e.id for e in embs if not e.error], config.cluster.worker_timeout)
         leases = _Leases(loc, config.claim_lease_s)
         stop, lost = threading.Event(), []
         watchdog = threading.Thread(target=_watch_workers, args=(address, config.cluster.worker_timeout, stop, lost), daemon=True)

@@ -1,0 +1,210 @@
+"""A Dask cluster across hosts (issue 37): each host is a network namespace on a bridge made by
+the test (``ip netns`` and veth pairs; root, as in CI). The scheduler and two workers run on
+their own hosts, started by their own CLIs; the store is on moto's S3 server on another; the
+Prefect server on this one, reached over the bridge; each driver on a host of its own.
+
+- The demo on the multi-host cluster equals a LocalCluster run's store (timed side by side).
+
+- Cutting one worker host's link mid-run: the run completes on the other worker and its
+  store equals a clean run's.
+- Two drivers on two hosts against the same S3 store split the shards and lose nothing.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+HANDEDIT = [sys.executable, "-m", "handedit.flows.cli"]
+NET = "10.78.0"
+BRIDGE = f"he{os.getpid() % 100000}"
+S3, SCHED, W1, W2, D1, D2 = (f"{NET}.{i}" for i in (5, 2, 3, 4, 6, 7))
+
+
+def _ip(*args: str, ns: str | None = None) -> None:
+    cmd = [*(["ip", "netns", "exec", ns] if ns else []), "ip", *args]
+    subprocess.run(cmd, check=True, capture_output=True, timeout=30)
+
+
+class Lan:
+    """A bridge here (``NET``.1) and hosts on it, each a namespace with one veth pair."""
+
+    def __init__(self):
+        self.hosts: dict[str, tuple[str, str]] = {}  # ip -> (namespace, bridge-side link)
+        _ip("link", "add", BRIDGE, "type", "bridge")
+        _ip("addr", "add", f"{NET}.1/24", "dev", BRIDGE)
+        _ip("link", "set", BRIDGE, "up")
+
+    def add(self, ip: str) -> str:
+        n = ip.rsplit(".", 1)[1]
+        ns, here, there = f"{BRIDGE}-{n}", f"{BRIDGE}h{n}", f"{BRIDGE}n{n}"
+        subprocess.run(["ip", "netns", "add", ns], check=True, capture_output=True)
+        _ip("link", "add", here, "type", "veth", "peer", "name", there)
+        _ip("link", "set", there, "netns", ns)
+        _ip("link", "set", here, "master", BRIDGE)
+        _ip("link", "set", here, "up")
+        _ip("addr", "add", f"{ip}/24", "dev", there, ns=ns)
+        _ip("link", "set", there, "up", ns=ns)
+        _ip("link", "set", "lo", "up", ns=ns)
+        self.hosts[ip] = (ns, here)
+        return ns
+
+    def cut(self, ip: str) -> None:
+        _ip("link", "set", self.hosts[ip][1], "down")
+
+    def run(self, ip: str, cmd: list[str], env: dict, **kw) -> subprocess.Popen:
+        return subprocess.Popen(["ip", "netns", "exec", self.hosts[ip][0], *cmd], env=env, **kw)
+
+    def close(self) -> None:
+        for ns, here in self.hosts.values():
+            subprocess.run(["ip", "link", "del", here], capture_output=True)
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+        subprocess.run(["ip", "link", "del", BRIDGE], capture_output=True)
+
+
+def _wait(check, what: str, timeout: float = 120.0) -> None:
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        try:
+            if check():
+                return
+        except Exception:  # noqa: BLE001 - not up yet
+            pass
+        time.sleep(0.5)
+    pytest.fail(f"{what} did not come up in {timeout:.0f} s")
+
+
+def _port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def lan(tmp_path_factory):
+    """The hosts and their services: S3 (moto), the Prefect server (here), the scheduler."""
+    import httpx
+
+    if os.geteuid() != 0:
+        pytest.fail("the test's hosts are network namespaces: `ip netns` needs root (CI runs as root)")
+    net = Lan()
+    procs = []
+    try:
+        for ip in (S3, SCHED, W1, W2, D1, D2):
+            net.add(ip)
+        env = {**os.environ, "AWS_ACCESS_KEY_ID": "test", "AWS_SECRET_ACCESS_KEY": "test", "AWS_DEFAULT_REGION": "us-east-1",
+               "AWS_ENDPOINT_URL": f"http://{S3}:5000"}
+        env.pop("PREFECT_API_URL", None)
+        procs.append(net.run(S3, [sys.executable, "-m", "moto.server", "-H", S3, "-p", "5000"], env,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        home = tmp_path_factory.mktemp("prefect-home")
+        port = _port()
+        procs.append(subprocess.Popen([sys.executable, "-m", "prefect", "server", "start", "--host", f"{NET}.1", "--port",
+                                       str(port)], env={**env, "PREFECT_HOME": str(home), "PREFECT_SERVER_UI_ENABLED": "false",
+                                                        "PREFECT_SERVER_ANALYTICS_ENABLED": "false"},
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        env["PREFECT_API_URL"] = f"http://{NET}.1:{port}/api"
+        import boto3
+
+        s3 = boto3.client("s3", endpoint_url=env["AWS_ENDPOINT_URL"], aws_access_key_id="test", aws_secret_access_key="test",
+                          region_name="us-east-1")
+        _wait(lambda: s3.create_bucket(Bucket="handedit"), "moto's S3")
+        _wait(lambda: httpx.get(env["PREFECT_API_URL"] + "/health", timeout=2).status_code == 200, "the Prefect server", 240)
+        sched_env = {**env, "DASK_DISTRIBUTED__SCHEDULER__WORKER_TTL": "15s"}  # a silent worker is gone after 15 s
+        procs.append(net.run(SCHED, [sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", SCHED, "--port", "8786",
+                                     "--dashboard-address", f"{SCHED}:0"], sched_env,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        yield net, env, procs
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait(timeout=30)
+        net.close()
+
+
+def _workers(net: Lan, env: dict) -> list[subprocess.Popen]:
+    from distributed import Client
+
+    out = [net.run(ip, [sys.executable, "-m", "distributed.cli.dask_worker", f"tcp://{SCHED}:8786", "--nthreads", "1",
+                        "--nworkers", "1", "--no-dashboard", "--host", ip], env,
+                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for ip in (W1, W2)]
+    with Client(f"tcp://{SCHED}:8786", timeout=60) as c:
+        c.wait_for_workers(2, timeout=120)
+    return out
+
+
+def _curate(out: str, *extra: str) -> list[str]:
+    return [*HANDEDIT, "curate", "--demo", "--clips", "4", "--frames", "16", "--width", "160", "--height", "120",
+            "--frames-per-chunk", "8", "--shard-size", "1", "--out", out, "--no-progress", *extra]
+
+
+def _same_store(a: str, b: str, env: dict) -> None:
+    code = ("import sys, numpy as np\n"
+            "from handedit.storage import Location, open_store\n"
+            "from test_scale_flow import arrays\n"
+            "da, db = arrays(open_store(Location(sys.argv[1]))), arrays(open_store(Location(sys.argv[2])))\n"
+            "assert set(da) == set(db), sorted(set(da) ^ set(db))[:5]\n"
+            "bad = [k for k in da if da[k].dtype != db[k].dtype or da[k].tobytes() != db[k].tobytes()]\n"
+            "assert not bad, bad[:10]\n"
+            "print(len(da), 'arrays equal')\n")
+    done = subprocess.run([sys.executable, "-c", code, a, b], env={**env, "PYTHONPATH": str(Path(__file__).parent)},
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+
+
+def test_a_worker_host_cut_off_mid_run_loses_nothing(lan):
+    net, env, _ = lan
+    workers = _workers(net, env)
+    try:
+        seconds = {}
+        for name, extra in (("multi-host", ["--address", f"tcp://{SCHED}:8786"]), ("local", ["--workers", "2"])):
+            t0 = time.perf_counter()  # the driver on its own host; the same demo on a LocalCluster there
+            clean = net.run(D1, _curate(f"s3://handedit/{'clean' if name == 'multi-host' else 'local'}", *extra), env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            out, err = clean.communicate(timeout=900)
+            assert clean.returncode == 0, out[-2000:] + err[-3000:]
+            seconds[name] = time.perf_counter() - t0
+        print(f"\ndemo: LocalCluster {seconds['local']:.1f} s, multi-host cluster {seconds['multi-host']:.1f} s")
+        _same_store("s3://handedit/clean", "s3://handedit/local", env)
+        run = net.run(D1, _curate("s3://handedit/cut", "--address", f"tcp://{SCHED}:8786"), env,
+                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        import s3fs
+
+        fs = s3fs.S3FileSystem(key="test", secret="test", client_kwargs={"endpoint_url": env["AWS_ENDPOINT_URL"]})
+        def working() -> bool:
+            if run.poll() is not None:
+                out, err = run.communicate()
+                pytest.fail(f"the second run ended before the cut (rc {run.returncode}): {out[-2000:]}{err[-3000:]}")
+            fs.invalidate_cache()
+            return bool(fs.glob("handedit/cut/handedit.zarr.records/clips/*/registration/*.json"))
+
+        _wait(working, "the second run's work", 300)
+        net.cut(W1)  # its host is gone from the network, mid-run
+        stdout, stderr = run.communicate(timeout=900)
+        assert run.returncode == 0, stdout[-2000:] + stderr[-3000:]
+    finally:
+        for w in workers:
+            w.kill()
+            w.wait(timeout=30)
+    _same_store("s3://handedit/clean", "s3://handedit/cut", env)
+
+
+def test_two_drivers_on_two_hosts_split_the_shards(lan):
+    """Each driver with its own LocalCluster on its host; the store and the Prefect API are shared."""
+    net, env, _ = lan
+    runs = [net.run(ip, _curate("s3://handedit/two", "--workers", "1"), env, stdout=subprocess.PIPE,
+                    stderr=subprocess.PIPE, text=True) for ip in (D1, D2)]
+    outs = [r.communicate(timeout=900) for r in runs]
+    for r, (o, e) in zip(runs, outs):
+        assert r.returncode == 0, o[-2000:] + e[-3000:]
+    ran = [int(next(l for l in o.splitlines() if l.startswith("shards:")).split()[1]) for o, _ in outs]
+    assert sum(ran) >= 4 and min(ran) >= 1, ran  # both worked, every shard was run
+    _same_store("s3://handedit/clean", "s3://handedit/two", env)
+    assert np.all(np.array(ran) <= 4)
