@@ -338,7 +338,8 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
         from handedit.flows.preflight import check_workers
 
         # each worker checks the store, the Prefect API and the robots from where it runs
-        check_workers(address, loc.store_url, [e.id for e in embs if not e.error], config.cluster.worker_timeout)
+        check_workers(address, loc.store_url, [e.id for e in embs if not e.error], config.cluster.worker_timeout,
+                      config.robots)
         leases = _Leases(loc, config.claim_lease_s)
         stop, lost = threading.Event(), []
         watchdog = threading.Thread(target=_watch_workers, args=(address, config.cluster.worker_timeout, stop, lost), daemon=True)

@@ -24,8 +24,9 @@ class WorkerSetupError(PreflightError):
     """A worker that cannot do the run's work where it runs."""
 
 
-def worker_problems(store_url: str, api_url: str | None, embodiments: list[str]) -> list[str]:
-    """What this process lacks for the run (empty: ready)."""
+def worker_problems(store_url: str, api_url: str | None, embodiments: list[str], robots: list[str] = ()) -> list[str]:
+    """What this process lacks for the run (empty: ready); ``robots``: the run's robot folders,
+    added as its embodiment tasks add them."""
     from handedit.storage.location import Location
 
     problems = []
@@ -48,10 +49,12 @@ def worker_problems(store_url: str, api_url: str | None, embodiments: list[str])
                             f"server on a host the workers reach (`prefect server start --host 0.0.0.0`) and set "
                             f"PREFECT_API_URL to that address on the driver")
     from handedit.embodiments import EmbodimentError, get_embodiment, resolve_urdf
+    from handedit.embodiments.robot_files import robot_dirs_added
 
     for emb_id in embodiments:
         try:
-            resolve_urdf(get_embodiment(emb_id))
+            with robot_dirs_added(list(robots)):
+                resolve_urdf(get_embodiment(emb_id))
         except EmbodimentError as exc:
             problems.append(f"embodiment {emb_id}: {exc} (HANDEDIT_ASSET_DIRS here: "
                             f"{os.environ.get('HANDEDIT_ASSET_DIRS')!r}; set it on the workers as on the driver)")
@@ -61,17 +64,17 @@ def worker_problems(store_url: str, api_url: str | None, embodiments: list[str])
 class WorkerPreflight(WorkerPlugin):
     name = "handedit-preflight"
 
-    def __init__(self, store_url: str, api_url: str | None, embodiments: list[str]):
-        self.store_url, self.api_url, self.embodiments = store_url, api_url, list(embodiments)
+    def __init__(self, store_url: str, api_url: str | None, embodiments: list[str], robots: list[str] = ()):
+        self.store_url, self.api_url, self.embodiments, self.robots = store_url, api_url, list(embodiments), list(robots)
 
     def setup(self, worker) -> None:
-        problems = worker_problems(self.store_url, self.api_url, self.embodiments)
+        problems = worker_problems(self.store_url, self.api_url, self.embodiments, self.robots)
         if problems:
             host = f"{socket.gethostname()} ({worker.address})"
             raise WorkerSetupError(f"worker {host}: " + "; ".join(problems))
 
 
-def check_workers(address: str, store_url: str, embodiments: list[str], timeout_s: float) -> None:
+def check_workers(address: str, store_url: str, embodiments: list[str], timeout_s: float, robots: list[str] = ()) -> None:
     """Wait for a first worker, then check every worker (``WorkerSetupError`` on the first problem)."""
     from distributed import Client
 
@@ -83,4 +86,4 @@ def check_workers(address: str, store_url: str, embodiments: list[str], timeout_
             client.wait_for_workers(1, timeout=timeout_s)
         except TimeoutError:
             return  # no worker yet: the run's watchdog reports a cluster without workers
-        client.register_plugin(WorkerPreflight(store_url, api, embodiments))
+        client.register_plugin(WorkerPreflight(store_url, api, embodiments, robots))
