@@ -13,7 +13,6 @@ Prefect server on this one, reached over the bridge; each driver on a host of it
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -21,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _servers import prefect_server
 
 HANDEDIT = [sys.executable, "-m", "handedit.flows.cli"]
 NET = "10.78.0"
@@ -81,17 +81,9 @@ def _wait(check, what: str, timeout: float = 120.0) -> None:
     pytest.fail(f"{what} did not come up in {timeout:.0f} s")
 
 
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture(scope="module")
 def lan(tmp_path_factory):
     """The hosts and their services: S3 (moto), the Prefect server (here), the scheduler."""
-    import httpx
-
     if os.geteuid() != 0:
         pytest.fail("the test's hosts are network namespaces: `ip netns` needs root (CI runs as root)")
     net = Lan()
@@ -104,19 +96,13 @@ def lan(tmp_path_factory):
         env.pop("PREFECT_API_URL", None)
         procs.append(net.run(S3, [sys.executable, "-m", "moto.server", "-H", S3, "-p", "5000"], env,
                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-        home = tmp_path_factory.mktemp("prefect-home")
-        port = _port()
-        procs.append(subprocess.Popen([sys.executable, "-m", "prefect", "server", "start", "--host", f"{NET}.1", "--port",
-                                       str(port)], env={**env, "PREFECT_HOME": str(home), "PREFECT_SERVER_UI_ENABLED": "false",
-                                                        "PREFECT_SERVER_ANALYTICS_ENABLED": "false"},
-                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-        env["PREFECT_API_URL"] = f"http://{NET}.1:{port}/api"
+        server, env["PREFECT_API_URL"] = prefect_server(f"{NET}.1", tmp_path_factory.mktemp("prefect-home"), env, 240)
+        procs.append(server)
         import boto3
 
         s3 = boto3.client("s3", endpoint_url=env["AWS_ENDPOINT_URL"], aws_access_key_id="test", aws_secret_access_key="test",
                           region_name="us-east-1")
         _wait(lambda: s3.create_bucket(Bucket="handedit"), "moto's S3")
-        _wait(lambda: httpx.get(env["PREFECT_API_URL"] + "/health", timeout=2).status_code == 200, "the Prefect server", 240)
         sched_env = {**env, "DASK_DISTRIBUTED__SCHEDULER__WORKER_TTL": "15s"}  # a silent worker is gone after 15 s
         procs.append(net.run(SCHED, [sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", SCHED, "--port", "8786",
                                      "--dashboard-address", f"{SCHED}:0"], sched_env,

@@ -14,40 +14,16 @@ from pathlib import Path
 
 import pytest
 
+from _servers import free_port, prefect_server
 from handedit.flows.preflight import worker_problems
 
 HANDEDIT = [sys.executable, "-m", "handedit.flows.cli"]
 
 
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture(scope="module")
 def api(tmp_path_factory):
     """A Prefect server of its own (the driver's PREFECT_API_URL; workers may or may not reach it)."""
-    import httpx
-
-    home = tmp_path_factory.mktemp("prefect-home")
-    port = _port()
-    env = {**os.environ, "PREFECT_HOME": str(home), "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
-           "PREFECT_SERVER_UI_ENABLED": "false"}
-    env.pop("PREFECT_API_URL", None)
-    proc = subprocess.Popen([sys.executable, "-m", "prefect", "server", "start", "--host", "127.0.0.1", "--port", str(port)],
-                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    url = f"http://127.0.0.1:{port}/api"
-    for _ in range(240):
-        try:
-            if httpx.get(url + "/health", timeout=2).status_code == 200:
-                break
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.5)
-    else:
-        proc.kill()
-        pytest.fail("the Prefect server did not start")
+    proc, url = prefect_server("127.0.0.1", tmp_path_factory.mktemp("prefect-home"))
     yield url
     proc.terminate()
     proc.wait(timeout=30)
@@ -82,7 +58,7 @@ def other_host():
 def _cluster(worker_env: dict, netns: str | None = None):
     """``dask scheduler`` and one ``dask worker``, each started by its own CLI (the worker in
     ``netns`` when given: another host, reaching the scheduler over the veth pair)."""
-    port = _port()
+    port = free_port()
     host = "10.77.9.1" if netns else "127.0.0.1"
     sched = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", host, "--port",
                               str(port), "--dashboard-address", "127.0.0.1:0"], stdout=subprocess.DEVNULL,
@@ -107,6 +83,13 @@ def _stop(procs) -> None:
         p.wait(timeout=30)
 
 
+def _told(done: subprocess.CompletedProcess, seconds: float) -> str:
+    """The run stopped at once (exit 2, not after a task's retries) with one line about a worker."""
+    assert done.returncode == 2, done.stdout[-2000:] + done.stderr[-3000:]
+    assert seconds < 120, f"told after {seconds:.0f} s"
+    return next(l for l in done.stderr.splitlines() if l.startswith("handedit curate: worker "))
+
+
 def test_a_worker_without_the_robot_assets_fails_the_run_at_once(api, robots_dir, tmp_path):
     driver = {**os.environ, "PREFECT_API_URL": api, "HANDEDIT_ASSET_DIRS": str(robots_dir)}
     worker = {k: v for k, v in driver.items() if k != "HANDEDIT_ASSET_DIRS"}
@@ -116,10 +99,8 @@ def test_a_worker_without_the_robot_assets_fails_the_run_at_once(api, robots_dir
         done, seconds = _curate(address, driver, tmp_path / "run")
     finally:
         _stop(procs)
-    assert done.returncode == 2, done.stdout[-2000:] + done.stderr[-3000:]
-    line = next(l for l in done.stderr.splitlines() if l.startswith("handedit curate: worker "))
+    line = _told(done, seconds)
     assert socket.gethostname() in line and "embodiment xarm_ability" in line and "HANDEDIT_ASSET_DIRS" in line
-    assert seconds < 120, f"told after {seconds:.0f} s"  # at once, not after a task's retries
 
 
 def test_a_worker_host_that_cannot_reach_the_prefect_api_fails_the_run_at_once(api, robots_dir, tmp_path, other_host):
@@ -130,10 +111,9 @@ def test_a_worker_host_that_cannot_reach_the_prefect_api_fails_the_run_at_once(a
         done, seconds = _curate(address, driver, tmp_path / "run")
     finally:
         _stop(procs)
-    assert done.returncode == 2, done.stdout[-2000:] + done.stderr[-3000:]
-    line = next(l for l in done.stderr.splitlines() if l.startswith("handedit curate: worker "))
+    line = _told(done, seconds)
     assert "tcp://10.77.9.2:" in line and f"cannot reach the run's Prefect API at {api}" in line
-    assert "PREFECT_API_URL" in line and seconds < 120, f"told after {seconds:.0f} s"
+    assert "PREFECT_API_URL" in line
 
 
 def test_a_store_the_worker_host_lacks_is_named(tmp_path):
