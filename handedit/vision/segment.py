@@ -7,7 +7,10 @@ snaps to the real boundary. The forearm is not in the keypoints: it is searched 
 corridor from the wrist along the forearm direction (away from the knuckles) up to the
 frame border and grown by the skin model; where the source tracks the arm in 3-D (EgoDex:
 elbow, shoulder), the whole arm in view, skin or sleeve, is cut inside its projected
-capsules instead (``_segment_arm``, ``handedit.vision.arm``). Without keypoints (a raw video) the skin
+capsules instead (``_segment_arm``, ``handedit.vision.arm``). Where it does not (a video, the MANO
+datasets) and the skin-grown arm stops inside the view (an arm always leaves the frame: a sleeve
+starts there), the arm is followed by contrast with its flanks, not by colour, and cut with
+GrabCut along that ray (``_segment_untracked_arm``). Without keypoints (a raw video) the skin
 model alone proposes the largest skin components and GrabCut refines them; the hand is
 then split from the arm at the narrowest point (the wrist) of the component's width
 profile, which is a heuristic, so these frames get a lower confidence.
@@ -63,7 +66,7 @@ _UNKNOWN_STABILITY = 0.75  # stability term for a frame without usable neighbour
 
 
 class SegmentConfig(pydantic.BaseModel):
-    VERSION: ClassVar[int] = 6
+    VERSION: ClassVar[int] = 7
     model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
 
     method: Literal["classical", "onnx"] = "classical"
@@ -97,6 +100,11 @@ class SegmentConfig(pydantic.BaseModel):
     arm_core_start_m: float = pydantic.Field(0.04, ge=0, description="the sure core starts this far up from the wrist")
     arm_inner_m: float = pydantic.Field(0.05, gt=0, description="probably arm (a forearm with its sleeve)")
     arm_outer_m: float = pydantic.Field(0.12, gt=0, description="probably background out to here, background beyond")
+    # an untracked arm (a video, the MANO datasets) whose skin stops inside the view: a sleeve (_segment_untracked_arm)
+    untracked_arm: bool = True
+    arm_contrast: float = pydantic.Field(14.0, gt=0, description="Lab distance from both flanks that marks a point as arm")
+    arm_flank: float = pydantic.Field(1.0, gt=0, description="the flanks lie this far aside (x hand scale)")
+    arm_min_votes: float = pydantic.Field(0.6, ge=0, le=1, description="share of a ray's points that must differ")
 
     @pydantic.model_validator(mode="after")
     def _model_needs_path(self) -> "SegmentConfig":
@@ -367,6 +375,92 @@ def _segment_arm(bgr: np.ndarray, hand_fg: np.ndarray, kp: _KpFrame, intr: Intri
     return _keep_touching(fg | hand_fg, (core & fg) | hand_fg)
 
 
+def _touches_border(mask: np.ndarray) -> bool:
+    return bool(mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any())
+
+
+def _arm_ray(lab: np.ndarray, kp: _KpFrame, cfg: SegmentConfig) -> tuple[np.ndarray, np.ndarray] | None:
+    """The untracked arm's ray from the wrist, found by contrast, not colour: (direction,
+    points along it that differ from both flanks), or None when no ray looks like an arm.
+
+    An arm, skin or sleeve, is a band from the wrist to the frame border that differs from
+    what lies on both sides of it; a ray over the table does not. Rays within
+    ``arm_search_deg`` of the knuckles->wrist guess vote with the share of their points whose
+    colour is ``arm_contrast`` (Lab) from both flanks (``arm_flank`` x hand scale aside)."""
+    s = kp.scale
+    h, w = lab.shape[:2]
+    base = np.arctan2(kp.forearm[1], kp.forearm[0])
+    r = np.arange(0.5 * s, float(h + w), 0.25 * s)
+    best, best_score = None, cfg.arm_min_votes
+    for a in np.deg2rad(np.arange(-cfg.arm_search_deg, cfg.arm_search_deg + 1, 5.0)):
+        d = np.array([np.cos(base + a), np.sin(base + a)])
+        p = kp.pts[WRIST] + r[:, None] * d
+        inside = (p[:, 0] >= 0) & (p[:, 0] <= w - 1) & (p[:, 1] >= 0) & (p[:, 1] <= h - 1)
+        n_in = int(np.argmin(inside)) if not inside.all() else len(inside)
+        if n_in < 4 or not inside[0]:
+            continue
+        p = p[:n_in]
+        centre = lab[np.round(p[:, 1]).astype(int), np.round(p[:, 0]).astype(int)]
+        contrast = np.full(n_in, np.inf, np.float32)
+        for side in (-1.0, 1.0):
+            f = p + side * cfg.arm_flank * s * np.array([-d[1], d[0]])
+            ok = (f[:, 0] >= 0) & (f[:, 0] <= w - 1) & (f[:, 1] >= 0) & (f[:, 1] <= h - 1)
+            fc = lab[np.round(f[ok, 1]).astype(int), np.round(f[ok, 0]).astype(int)]
+            contrast[ok] = np.minimum(contrast[ok], np.linalg.norm(centre[ok] - fc, axis=1))
+        differs = contrast >= cfg.arm_contrast  # (no flank in view: the band fills the view across)
+        score = float(differs.mean()) - 0.002 * abs(float(np.rad2deg(a)))
+        if score > best_score:
+            best, best_score = (d, p[differs]), score
+    return best
+
+
+def _segment_untracked_arm(bgr: np.ndarray, fg: np.ndarray, hand: np.ndarray, kp: _KpFrame, cfg: SegmentConfig,
+                           others: np.ndarray | None) -> np.ndarray:
+    """The arm beyond where the skin ends, where the source does not track it (a video, the
+    MANO datasets): a sleeve is not skin, so the skin-grown arm stops at its cuff.
+
+    An arm leaves the frame: a hand-arm mask whose arm part stays inside the view has lost
+    it. Then the arm's ray is found by contrast (``_arm_ray``), its verified points are sure
+    arm, a forearm-wide band along it probably arm, a wider one probably background, and
+    GrabCut's colour models decide where the sleeve is, as for a tracked arm."""
+    if _touches_border(fg & ~hand):
+        return fg
+    lab = cv2.cvtColor(cv2.medianBlur(bgr, 5), cv2.COLOR_BGR2LAB).astype(np.float32)
+    ray = _arm_ray(lab, kp, cfg)
+    if ray is None:
+        return fg
+    d, verified = ray
+    s, shape = kp.scale, fg.shape
+    wrist = kp.pts[WRIST]
+    far = wrist + d * float(shape[0] + shape[1])
+
+    def band(width: float) -> np.ndarray:
+        m = np.zeros(shape, np.uint8)
+        cv2.line(m, _ipt(wrist), _ipt(far), 1, max(2, int(round(width * s))))
+        return m.astype(bool)
+
+    core = np.zeros(shape, np.uint8)
+    for p in verified:
+        cv2.circle(core, _ipt(p), max(1, int(round(0.1 * s))), 1, -1)
+    core = core.astype(bool) & ~fg
+    if not core.any():
+        return fg
+    init = np.full(shape, cv2.GC_BGD, np.uint8)
+    init[band(2 * cfg.arm_flank + cfg.forearm_width)] = cv2.GC_PR_BGD
+    init[band(cfg.forearm_width)] = cv2.GC_PR_FGD
+    init[core] = cv2.GC_FGD
+    img = bgr.copy()  # the skin must not teach the arm's colour model (as in _segment_arm)
+    img[fg] = np.median(bgr[core], axis=0).astype(np.uint8)
+    init[fg] = cv2.GC_FGD
+    if others is not None:
+        init[others] = cv2.GC_BGD
+    arm = _grabcut(img, init, cfg)
+    arm = cv2.morphologyEx(arm.astype(np.uint8), cv2.MORPH_CLOSE, disk(1)).astype(bool)
+    if others is not None:
+        arm &= ~others
+    return _keep_touching(arm | fg, core | fg)
+
+
 def _segment_kp(bgr: np.ndarray, ycc: np.ndarray, prob: np.ndarray, kp: _KpFrame, cfg: SegmentConfig,
                 others: np.ndarray | None = None, intr: Intrinsics | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(handarm, hand) bool masks for a frame seeded by its keypoints.
@@ -426,6 +520,8 @@ def _segment_kp(bgr: np.ndarray, ycc: np.ndarray, prob: np.ndarray, kp: _KpFrame
     hand = fg & _half_plane(shape, kp.pts[WRIST], kp.forearm, cfg.wrist_margin * s)
     if tracked:
         fg = _segment_arm(bgr, fg, kp, intr, cfg, others)
+    elif cfg.untracked_arm:
+        fg = _segment_untracked_arm(bgr, fg, hand, kp, cfg, others)
     return fg, hand
 
 
