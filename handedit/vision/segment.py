@@ -357,22 +357,35 @@ def _segment_arm(bgr: np.ndarray, hand_fg: np.ndarray, kp: _KpFrame, intr: Intri
         core = capsule(kp.limb, intr, cfg.arm_core_m, shape) & ~hand_fg
     if not core.any():
         return hand_fg
-    init = np.full(shape, cv2.GC_BGD, np.uint8)
+    return _cut_arm(bgr, hand_fg, outer, capsule(kp.limb, intr, cfg.arm_inner_m, shape), core, cfg, others)
+
+
+def _cut_arm(bgr: np.ndarray, known: np.ndarray, outer: np.ndarray, inner: np.ndarray, core: np.ndarray,
+             cfg: SegmentConfig, others: np.ndarray | None) -> np.ndarray:
+    """GrabCut of an arm, tracked or not: ``known`` (the hand, or the hand and its skin) and
+    ``core`` are sure arm, ``inner`` probably arm, ``outer`` probably background, background
+    beyond; ``others`` (the other hands) background. ``known`` is arm too, but its skin must
+    not teach the arm's colour model (a beige table is skin-like): it takes the core's median
+    colour and stays sure foreground. Returns the arm's components touching the seeds."""
+    init = np.full(known.shape, cv2.GC_BGD, np.uint8)
     init[outer] = cv2.GC_PR_BGD
-    init[capsule(kp.limb, intr, cfg.arm_inner_m, shape)] = cv2.GC_PR_FGD
+    init[inner] = cv2.GC_PR_FGD
     init[core] = cv2.GC_FGD
-    # the hand is arm too, but its skin must not teach the arm's colour model (a beige table
-    # is skin-like): it takes the core's median colour and stays sure foreground
     img = bgr.copy()
-    img[hand_fg] = np.median(bgr[core], axis=0).astype(np.uint8)
-    init[hand_fg] = cv2.GC_FGD
+    img[known] = np.median(bgr[core], axis=0).astype(np.uint8)
+    init[known] = cv2.GC_FGD
     if others is not None:
         init[others] = cv2.GC_BGD
     fg = _grabcut(img, init, cfg)
     fg = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_CLOSE, disk(1)).astype(bool)
     if others is not None:
         fg &= ~others
-    return _keep_touching(fg | hand_fg, (core & fg) | hand_fg)
+    return _keep_touching(fg | known, (core & fg) | known)
+
+
+def _in_view(p: np.ndarray, w: int, h: int) -> np.ndarray:
+    """(m,) bool: points (m,2) that round to a pixel of a w x h image."""
+    return (p[:, 0] >= 0) & (p[:, 0] <= w - 1) & (p[:, 1] >= 0) & (p[:, 1] <= h - 1)
 
 
 def _touches_border(mask: np.ndarray) -> bool:
@@ -395,7 +408,7 @@ def _arm_ray(lab: np.ndarray, kp: _KpFrame, cfg: SegmentConfig) -> tuple[np.ndar
     for a in np.deg2rad(np.arange(-cfg.arm_search_deg, cfg.arm_search_deg + 1, 5.0)):
         d = np.array([np.cos(base + a), np.sin(base + a)])
         p = kp.pts[WRIST] + r[:, None] * d
-        inside = (p[:, 0] >= 0) & (p[:, 0] <= w - 1) & (p[:, 1] >= 0) & (p[:, 1] <= h - 1)
+        inside = _in_view(p, w, h)
         n_in = int(np.argmin(inside)) if not inside.all() else len(inside)
         if n_in < 4 or not inside[0]:
             continue
@@ -404,7 +417,7 @@ def _arm_ray(lab: np.ndarray, kp: _KpFrame, cfg: SegmentConfig) -> tuple[np.ndar
         contrast = np.full(n_in, np.inf, np.float32)
         for side in (-1.0, 1.0):
             f = p + side * cfg.arm_flank * s * np.array([-d[1], d[0]])
-            ok = (f[:, 0] >= 0) & (f[:, 0] <= w - 1) & (f[:, 1] >= 0) & (f[:, 1] <= h - 1)
+            ok = _in_view(f, w, h)
             fc = lab[np.round(f[ok, 1]).astype(int), np.round(f[ok, 0]).astype(int)]
             contrast[ok] = np.minimum(contrast[ok], np.linalg.norm(centre[ok] - fc, axis=1))
         differs = contrast >= cfg.arm_contrast  # (no flank in view: the band fills the view across)
@@ -422,7 +435,7 @@ def _segment_untracked_arm(bgr: np.ndarray, fg: np.ndarray, hand: np.ndarray, kp
     An arm leaves the frame: a hand-arm mask whose arm part stays inside the view has lost
     it. Then the arm's ray is found by contrast (``_arm_ray``), its verified points are sure
     arm, a forearm-wide band along it probably arm, a wider one probably background, and
-    GrabCut's colour models decide where the sleeve is, as for a tracked arm."""
+    GrabCut's colour models decide where the sleeve is, as for a tracked arm (``_cut_arm``)."""
     if _touches_border(fg & ~hand):
         return fg
     lab = cv2.cvtColor(cv2.medianBlur(bgr, 5), cv2.COLOR_BGR2LAB).astype(np.float32)
@@ -445,20 +458,7 @@ def _segment_untracked_arm(bgr: np.ndarray, fg: np.ndarray, hand: np.ndarray, kp
     core = core.astype(bool) & ~fg
     if not core.any():
         return fg
-    init = np.full(shape, cv2.GC_BGD, np.uint8)
-    init[band(2 * cfg.arm_flank + cfg.forearm_width)] = cv2.GC_PR_BGD
-    init[band(cfg.forearm_width)] = cv2.GC_PR_FGD
-    init[core] = cv2.GC_FGD
-    img = bgr.copy()  # the skin must not teach the arm's colour model (as in _segment_arm)
-    img[fg] = np.median(bgr[core], axis=0).astype(np.uint8)
-    init[fg] = cv2.GC_FGD
-    if others is not None:
-        init[others] = cv2.GC_BGD
-    arm = _grabcut(img, init, cfg)
-    arm = cv2.morphologyEx(arm.astype(np.uint8), cv2.MORPH_CLOSE, disk(1)).astype(bool)
-    if others is not None:
-        arm &= ~others
-    return _keep_touching(arm | fg, core | fg)
+    return _cut_arm(bgr, fg, band(2 * cfg.arm_flank + cfg.forearm_width), band(cfg.forearm_width), core, cfg, others)
 
 
 def _segment_kp(bgr: np.ndarray, ycc: np.ndarray, prob: np.ndarray, kp: _KpFrame, cfg: SegmentConfig,
