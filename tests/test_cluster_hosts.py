@@ -3,10 +3,8 @@ the test (``ip netns`` and veth pairs; root, as in CI). The scheduler and two wo
 their own hosts, started by their own CLIs; the store is on moto's S3 server on another; the
 Prefect server on this one, reached over the bridge; each driver on a host of its own.
 
-- The demo on the multi-host cluster equals a LocalCluster run's store (timed side by side).
-
-- Cutting one worker host's link mid-run: the run completes on the other worker and its
-  store equals a clean run's.
+- The demo on the multi-host cluster, one worker host's link cut mid-run: the run completes
+  on the other worker and its store equals a LocalCluster run's (timed side by side).
 - Two drivers on two hosts against the same S3 store split the shards and lose nothing.
 """
 
@@ -149,16 +147,15 @@ def test_a_worker_host_cut_off_mid_run_loses_nothing(lan):
     net, env, _ = lan
     workers = _workers(net, env)
     try:
-        seconds = {}
-        for name, extra in (("multi-host", ["--address", f"tcp://{SCHED}:8786"]), ("local", ["--workers", "2"])):
-            t0 = time.perf_counter()  # the driver on its own host; the same demo on a LocalCluster there
-            clean = net.run(D1, _curate(f"s3://handedit/{'clean' if name == 'multi-host' else 'local'}", *extra), env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-            out, err = clean.communicate(timeout=900)
-            assert clean.returncode == 0, out[-2000:] + err[-3000:]
-            seconds[name] = time.perf_counter() - t0
-        print(f"\ndemo: LocalCluster {seconds['local']:.1f} s, multi-host cluster {seconds['multi-host']:.1f} s")
-        _same_store("s3://handedit/clean", "s3://handedit/local", env)
+        t0 = time.perf_counter()  # the demo on a LocalCluster on the driver's host: the reference store
+        local = net.run(D1, _curate("s3://handedit/local", "--workers", "2"), env,
+                        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        out, err = local.communicate(timeout=900)
+        assert local.returncode == 0, out[-2000:] + err[-3000:]
+        local_s = time.perf_counter() - t0
+        # the same demo on the multi-host cluster, one worker host cut off mid-run: one run proves both
+        # multi-host == LocalCluster and nothing lost (CI time)
+        t0 = time.perf_counter()
         run = net.run(D1, _curate("s3://handedit/cut", "--address", f"tcp://{SCHED}:8786"), env,
                       stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         import s3fs
@@ -175,11 +172,12 @@ def test_a_worker_host_cut_off_mid_run_loses_nothing(lan):
         net.cut(W1)  # its host is gone from the network, mid-run
         stdout, stderr = run.communicate(timeout=900)
         assert run.returncode == 0, stdout[-2000:] + stderr[-3000:]
+        print(f"\ndemo: LocalCluster {local_s:.1f} s, multi-host cluster (one host cut) {time.perf_counter() - t0:.1f} s")
     finally:
         for w in workers:
             w.kill()
             w.wait(timeout=30)
-    _same_store("s3://handedit/clean", "s3://handedit/cut", env)
+    _same_store("s3://handedit/local", "s3://handedit/cut", env)
 
 
 def test_two_drivers_on_two_hosts_split_the_shards(lan):
@@ -192,5 +190,5 @@ def test_two_drivers_on_two_hosts_split_the_shards(lan):
         assert r.returncode == 0, o[-2000:] + e[-3000:]
     ran = [int(next(l for l in o.splitlines() if l.startswith("shards:")).split()[1]) for o, _ in outs]
     assert sum(ran) >= 4 and min(ran) >= 1, ran  # both worked, every shard was run
-    _same_store("s3://handedit/clean", "s3://handedit/two", env)
+    _same_store("s3://handedit/local", "s3://handedit/two", env)
     assert np.all(np.array(ran) <= 4)
