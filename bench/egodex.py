@@ -16,7 +16,8 @@ The hand-arm measures (``arm_report``), from EgoDex's own 3-D arm annotations: t
 coverage (the share of the projected forearm capsule, wrist to elbow, 4 cm radius, inside
 the hand-arm mask: a sleeve left beside the robot arm scores low), per clip and side,
 pixel-weighted over the frames the hand is in view, also at 3 and 2 cm (the forearm's core:
-a slim forearm leaves table inside the 4 cm capsule); the kept hand-arm frames with more than
+a slim forearm leaves table inside the 4 cm capsule), beside the mask's half-width across the
+forearm (``half_widths``: a bare forearm of 3 cm covers about 3/4 of the 4 cm capsule); the kept hand-arm frames with more than
 25 % of a robot outside the human arm's corridor (the hand-arm mask plus the capsule, grown
 by 5 % of the image width); and the RESIDUE rejections per clip: restoration's (frames) and
 composite's, which judges residue where no robot covers it (frame-sides per embodiment).
@@ -172,6 +173,40 @@ def coverage(root, clip: str, emb: str) -> tuple[float, float]:
 # The issue's measure is the 4 cm capsule; the narrower ones are the forearm's core: a slim
 # forearm (or an annotated elbow a little beside the visible one) leaves table inside 4 cm.
 COVERAGE_RADII_M = (0.04, 0.03, 0.02)
+HALF_WIDTH_AT_M = (0.06, 0.08, 0.10, 0.12, 0.14)  # along the forearm from the wrist: past the hand, before the elbow leaves
+
+
+def half_widths(mask, wrist, elbow, intr) -> list[float]:
+    """The hand-arm mask's half-width across the forearm (m) a few cm up from the wrist: the
+    arm's own radius where the mask follows it, so the coverage at a radius above it reads
+    roughly their ratio (a bare forearm of 3 cm cannot fill a 4 cm capsule) rather than a miss."""
+    import numpy as np
+
+    from handedit.camera import project
+
+    h, w = mask.shape
+    d = (elbow - wrist) / max(float(np.linalg.norm(elbow - wrist)), 1e-9)
+    out = []
+    for s in HALF_WIDTH_AT_M:
+        p = wrist + s * d
+        if p[2] < 0.15:  # too close to the lens for a width
+            continue
+        (u0, v0), (u1, v1) = project(np.stack([p, p + 0.01 * d]), intr)
+        ax = np.array([u1 - u0, v1 - v0]) / max(float(np.hypot(u1 - u0, v1 - v0)), 1e-9)
+        n = np.array([-ax[1], ax[0]])
+        if not (0 <= u0 < w and 0 <= v0 < h) or not mask[int(v0), int(u0)]:
+            continue
+        steps = 0
+        for sign in (1, -1):  # walk out of the mask on both sides of the axis
+            k = 1
+            while True:
+                u, v = u0 + sign * k * n[0], v0 + sign * k * n[1]
+                if not (0 <= u < w and 0 <= v < h) or not mask[int(v), int(u)]:
+                    break
+                k += 1
+            steps += k - 1
+        out.append(steps / 2 * p[2] / intr.fx)
+    return out
 
 
 def arm_report(root) -> dict:
@@ -204,8 +239,9 @@ def arm_report(root) -> dict:
         hs, handarm = reg["hand_status"][:], seg["handarm_mask"][:]  # read once: every side and embodiment uses it
         shape = (intr.height, intr.width)
         for k, side in enumerate(ing.attrs["hands"]):
-            inside, total = defaultdict(int), defaultdict(int)
+            inside, total, widths = defaultdict(int), defaultdict(int), []
             for t in np.flatnonzero((hs[:, k] == Reason.OK) & arm_ok[:, k, 0]):
+                widths += half_widths(handarm[t, k], kp[t, k, 0], arm[t, k, 0], intr)
                 for r in COVERAGE_RADII_M:
                     cap = forearm_capsule(kp[t, k, 0], arm[t, k, 0], intr, shape, radius_m=r)
                     if coverage(handarm[t, k], cap) is None:
@@ -213,6 +249,7 @@ def arm_report(root) -> dict:
                     inside[r] += int((handarm[t, k] & cap).sum())
                     total[r] += int(cap.sum())
             out["coverage"][(c, side)] = {r: inside[r] / total[r] if total[r] else float("nan") for r in COVERAGE_RADII_M}
+            out["coverage"][(c, side)]["half_width"] = float(np.median(widths)) if widths else float("nan")
         out["residue"][c] = int(sum((root[Unit("restore_background", c, scope=s).path]["status"][:] == Reason.RESIDUE).sum()
                                     for s in ("hand", "hand_arm") if Unit("restore_background", c, scope=s).path in root))
         L = limbs(kp, arm, arm_ok)
@@ -232,9 +269,11 @@ def arm_report(root) -> dict:
 
 def print_arm_report(rep: dict) -> None:
     radii = "  ".join(f"{100 * r:.0f} cm" for r in COVERAGE_RADII_M)
-    print(f"\nforearm coverage (share of the forearm capsule inside the hand-arm mask), per clip and hand, capsule radius {radii}:")
+    print(f"\nforearm coverage (share of the forearm capsule inside the hand-arm mask), per clip and hand, capsule radius {radii};"
+          "\nand the mask's half-width across the forearm, 6-14 cm from the wrist (median, cm):")
     for (c, side), v in rep["coverage"].items():
-        print(f"  {c:<34} {side:<6} " + "  ".join(f"{v[r]:5.2f}" for r in COVERAGE_RADII_M))
+        print(f"  {c:<34} {side:<6} " + "  ".join(f"{v[r]:5.2f}" for r in COVERAGE_RADII_M)
+              + f"   half-width {100 * v['half_width']:4.1f}")
     print("\nkept hand-arm frame-sides with > 25 % of the robot outside the arm corridor:")
     for (c, e), (bad, n) in rep["off_arm"].items():
         print(f"  {c:<34} {e:<14} {bad:>4} of {n}")

@@ -52,19 +52,52 @@ def test_body_distance_is_a_head_torso_capsule():
     assert body_distance(beside, cam, UP, 0.10, 0.6) == pytest.approx(0.4, abs=1e-9)
 
 
-def test_arm_through_the_head_is_a_body_collision(assets):
-    """The true base's own trajectory, with the camera (head) put on its elbow: every frame
-    fails BODY_COLLISION there; with the head far away the same candidate is kept."""
+WIDE = CFG.model_copy(update={"body_radius_m": 1.0})  # a body wide enough to hold every candidate's shoulder, refined or not
+
+
+def _head_at_base(n_hit: int):
+    """The true base's sequence with the camera (head) on the true base in the first ``n_hit``
+    of 6 frames (far away in the others): whatever the candidate, of either grid, and the
+    IK's choice of elbow, the robot's shoulder is inside the operator's body there."""
     targets, Tb = _known_sequence()
-    arm = arm_model(EMB)
-    valid = np.ones(len(targets), bool)
-    free = search_virtual_base(targets, valid, EMB, CFG, up=UP, init_base=Tb, cameras=_camera_at(np.array([5.0, 0, 0]), 6))
+    cams = _camera_at(np.array([5.0, 0, 0]), 6)
+    cams[:n_hit, :3, 3] = Tb[:3, 3]
+    return search_virtual_base(targets, np.ones(len(targets), bool), EMB, WIDE, up=UP, init_base=Tb, cameras=cams)
+
+
+def test_arm_through_the_head_is_a_body_collision(assets):
+    """Every frame through the body: each candidate keeps nothing and is discarded for it;
+    with the head far away the same candidate is kept."""
+    targets, Tb = _known_sequence()
+    free = search_virtual_base(targets, np.ones(len(targets), bool), EMB, WIDE, up=UP, init_base=Tb,
+                               cameras=_camera_at(np.array([5.0, 0, 0]), 6))
     assert free.candidates[13].reason == Reason.OK
-    elbow = (Tb[:3, :3] @ arm.chain(free.arm_tracks[13][0]) + Tb[:3, 3:4])[:, np.flatnonzero(arm.proximal)[1]]
-    hit = search_virtual_base(targets, valid, EMB, CFG, up=UP, init_base=Tb, cameras=_camera_at(elbow, 6))
-    assert hit.candidates[13].reason == Reason.BODY_COLLISION
-    assert hit.frame_status[13, 0] == Reason.BODY_COLLISION
+    hit = _head_at_base(6)
+    assert (hit.frame_status[13] == Reason.BODY_COLLISION).all()
+    assert hit.candidates[13].reason == Reason.BODY_COLLISION and not hit.candidates[13].last_resort
     assert "body collision" in hit.candidates[13].detail
+    assert hit.reason == Reason.NO_VALID_BASE and hit.chosen is None  # nothing to keep: the sequence is lost
+
+
+def test_body_collisions_alone_leave_a_base_of_last_resort(assets):
+    """The robot's shoulder in the body in 4 of 6 frames, for every candidate of both grids:
+    each keeps fewer than ``min_reachability`` of the frames, but only the operator's body
+    stops it, so the sequence keeps a base and those 4 frames alone fail (before: all 6 lost
+    to NO_VALID_BASE)."""
+    hit = _head_at_base(4)
+    assert WIDE.min_reachability * 6 > 2  # the 2 frames left are fewer than min_reachability asks for
+    assert (hit.frame_status[:27, :4] == Reason.BODY_COLLISION).all() and hit.diagnosis["refined"]
+    assert not (hit.frame_status[:, :4] == Reason.OK).any()  # nor is any refined base clear of the body
+    assert hit.reason == Reason.OK and hit.chosen is not None and hit.diagnosis["last_resort"] > 0
+    assert hit.candidates[hit.chosen].detail.startswith("last resort")
+    assert (hit.status[:4] == Reason.BODY_COLLISION).all() and (hit.status[4:] == Reason.OK).all()
+
+
+def test_a_clear_base_beats_the_last_resort(assets):
+    """When one candidate is clear of the body, no candidate of last resort is considered."""
+    hit = _head_at_base(0)
+    assert hit.reason == Reason.OK and "last_resort" not in hit.diagnosis
+    assert not any(c.detail.startswith("last resort") for c in hit.candidates)
 
 
 def test_one_failed_frame_in_fifty_does_not_discard_a_candidate(assets):

@@ -155,6 +155,30 @@ def test_segment_with_keypoints(scene):
         assert _iou(r.hand_mask[i], hand_gt[i]) > IOU_KP_HAND
 
 
+def test_an_object_the_fingers_reach_toward_stays_out_of_the_hand():
+    """A skin-coloured object touching the fingertips (a white cup under warm light): GrabCut
+    alone takes it into the hand; ``hand_reach`` bounds the mask around each bone."""
+    h, w, s = 180, 320, 40
+    frames, kps, cups, hands = [], [], [], []
+    for t in range(2):
+        f = _background(h, w, 0)
+        kp = _hand_keypoints(120 + 8 * t, 140, s, 0.1 - 0.03 * t)
+        hand, _ = _draw_hand(f, kp, s)
+        cup = np.zeros((h, w), np.uint8)
+        tip = kp[12]
+        cv2.rectangle(cup, (int(tip[0] - 0.5 * s), int(tip[1] - 0.6 * s)), (int(tip[0] + 0.5 * s), int(tip[1]) + 2), 1, -1)
+        f[cup.astype(bool)] = SKIN
+        frames.append(f), kps.append(kp), cups.append(cup.astype(bool) & ~hand), hands.append(hand & ~cup.astype(bool))
+    frames, kps, cups, hands = np.stack(frames), np.stack(kps).astype(np.float32), np.stack(cups), np.stack(hands)
+    valid = np.ones(kps.shape[:2], bool)[:, None]
+    unbounded = one(segment(frames, kps[:, None], valid, SegmentConfig(hand_reach=0.0))).hand_mask
+    bounded = one(segment(frames, kps[:, None], valid, SegmentConfig())).hand_mask
+    for i in range(len(frames)):
+        assert (unbounded[i] & cups[i]).sum() > 0.9 * cups[i].sum()  # the failure: the whole object taken
+        assert (bounded[i] & cups[i]).sum() < 0.4 * cups[i].sum()
+        assert _iou(bounded[i], hands[i]) > IOU_KP_HAND
+
+
 def test_segment_without_keypoints_lower_confidence(scene):
     _, frames, kps, hand_gt, arm_gt = scene
     with_kp = one(segment(frames, kps[:, None], np.ones(kps.shape[:2], bool)[:, None]))

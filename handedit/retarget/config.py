@@ -11,8 +11,9 @@ from handedit.vision.arm import MAX_OFF_ARM
 
 class VirtualBaseConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
-    VERSION: ClassVar[int] = 4  # 3: head-torso keep-out, critical tolerance, refinement grid, plausibility ranking;
-    # 4: the footprint is the links' visual hulls, and frames composite would drop as off-arm count against a base
+    VERSION: ClassVar[int] = 5  # 3: head-torso keep-out, critical tolerance, refinement grid, plausibility ranking;
+    # 4: the footprint is the links' visual hulls, and frames composite would drop as off-arm count against a base;
+    # 5: candidates discarded for body collisions alone are a last resort (their frames fail, not the sequence)
 
     init_back: float = Field(0.55, description="base distance behind the wrist centre, in L_r")
     init_up: float = Field(0.10, description="base height above the wrist centre, in L_r")
@@ -39,7 +40,8 @@ class VirtualBaseConfig(BaseModel):
     critical_tolerance: float = Field(0.02, ge=0, le=1, description="share of a sequence's critical frames a candidate may "
                                       "fail (those frames are rejected on their own) before it is discarded")
     min_reachability: float = Field(0.5, ge=0, le=1, description="a candidate that keeps fewer of the sequence's valid frames "
-                                    "than this (body collisions, failures off the critical frames) is discarded")
+                                    "than this (body collisions, failures off the critical frames) is discarded; when only "
+                                    "body collisions discard every candidate of both grids, those are kept as a last resort")
     refine_reach_frac: float = Field(0.65, gt=0, le=1, description="when none of the 27 survive: a second grid whose centre puts "
                                      "the wrist targets this share of L_r from the arm's first joint")
     plausibility_frames: int = Field(8, ge=0, description="frames per candidate on which the footprint and forearm measures "

@@ -19,8 +19,9 @@ whole sequence:
   more than ``critical_tolerance`` of its critical frames fail (the paper does not say which
   frames are critical; the caller passes the frames where the hand is in view: see
   ``hand_arm.critical_frames``), when it keeps less than ``min_reachability`` of the
-  sequence (a body collision fails that frame, never the candidate by itself) or when its
-  kept frames jump; failed frames of a kept candidate are rejected alone;
+  sequence or when its kept frames jump; failed frames of a kept candidate are rejected
+  alone; a body collision never fails a critical frame, and a candidate discarded for body
+  collisions alone is a base of last resort (``_last_resort``) when no other survives;
 * when none of the 27 survives, a second grid is centred where the arm's first joint sits
   ``refine_reach_frac`` L_r from the wrist targets (``reach_centre``: a long arm beside the
   human shoulder folds onto targets 0.3 L_r away and reaches no wrist orientation); the
@@ -74,6 +75,7 @@ class CandidateScore:
     stage: str = "grid"  # "grid": the paper's 27; "refine": the reach-aware second grid
     down: float = 0.0  # refine: the base this far below the grid centre, in L_r
     off_arm_rate: float = 0.0  # share of the sampled frames whose footprint is more than max_off_arm outside the corridor
+    last_resort: bool = False  # discarded for body collisions alone: a base when no candidate of either grid survives
 
     def key(self) -> tuple:
         """Lexicographic rank: the critical frames it keeps once composite's off-arm screen
@@ -411,9 +413,10 @@ def _score(idx: int, grid_entry, track: _Track, arm: ArmModel, valid: np.ndarray
     solved = np.flatnonzero(ok)  # steps between frames that are kept (a rejected frame's pose is never shown)
     steps = np.abs(np.diff(track.arm_q[solved], axis=0)).max(axis=1) if len(solved) > 1 else np.zeros(0)
     cont = float(steps.max()) if steps.size else 0.0
-    reason, detail = Reason.OK, ""
+    reason, detail, last_resort = Reason.OK, "", False
     # a body collision is the operator's keep-out, not the robot's limit: that frame alone is rejected
-    bad_crit = crit & ~ok & (st != Reason.BODY_COLLISION)
+    body = st == Reason.BODY_COLLISION
+    bad_crit = crit & ~ok & ~body
     allowed = int(np.floor(cfg.critical_tolerance * crit.sum()))
     if bad_crit.sum() > allowed:
         r = Reason(int(np.bincount(st[bad_crit]).argmax()))  # the commonest frame-level cause names the rejection
@@ -424,10 +427,14 @@ def _score(idx: int, grid_entry, track: _Track, arm: ArmModel, valid: np.ndarray
         r = Reason(int(np.bincount(st[valid & ~ok]).argmax()))
         reason = r
         detail = f"keeps {int(ok.sum())} of {int(valid.sum())} frames ({_name(r)} in most of the others)"
+        # the robot itself follows enough of the sequence, only the operator's body is in the way: a base of last resort
+        robot_fail = valid & ~ok & ~body
+        last_resort = bool(ok.any() and robot_fail.sum() <= (1.0 - cfg.min_reachability) * valid.sum()
+                           and cont <= cfg.max_joint_step)
     elif cont > cfg.max_joint_step:
         reason, detail = Reason.DISCONTINUITY, f"joint step {cont:.2f} rad > {cfg.max_joint_step}"
     return CandidateScore(idx, lat, fwd, yaw, Tb, int(reason), detail, crit_succ, reach, ee, margin, cont,
-                          down=grid_entry[4] if len(grid_entry) > 4 else 0.0)
+                          down=grid_entry[4] if len(grid_entry) > 4 else 0.0, last_resort=last_resort)
 
 
 def _name(r: Reason) -> str:
@@ -541,6 +548,8 @@ def search_virtual_base(
         head = np.zeros(3) if cameras is None else cameras[int(np.flatnonzero(valid)[0])][:3, 3]
         run(refine_grid(T1, arm.reach, T0[:3, 3] - head), "refine")
         diagnosis.update(refined=True, refine=_causes(scores[27:]))
+    if not any(c.reason == Reason.OK for c in scores):
+        _last_resort(scores, tracks, arm, cameras, view, cfg, diagnosis)
     ranking = sorted((c.index for c in scores if c.reason == Reason.OK), key=lambda i: scores[i].key())
     for r, i in enumerate(ranking):
         scores[i].rank = r
@@ -566,6 +575,22 @@ def search_virtual_base(
                                           None, None, None, np.zeros(n, STATUS_DTYPE), trajectories, arm_tracks,
                                           frame_status, diagnosis),
                         chosen, tracks[chosen], arm)
+
+
+def _last_resort(scores: list[CandidateScore], tracks: list[_Track], arm: ArmModel, cameras: np.ndarray | None,
+                 view: BaseView | None, cfg: VirtualBaseConfig, diagnosis: dict) -> None:
+    """No candidate of either grid survives: those the operator's body alone discarded (the
+    robot follows the sequence, its arm crosses the head or torso in some frames) survive
+    after all, so the sequence keeps the frames that are clear and rejects the others as
+    BODY_COLLISION rather than losing every frame to NO_VALID_BASE. Ranked as usual (the
+    fewest body collisions first: critical-frame success leads the key)."""
+    for c in scores:
+        if c.last_resort:
+            c.reason = int(Reason.OK)
+            c.detail = f"last resort: {c.detail}"
+            if view is not None and cameras is not None:
+                _plausibility(c, tracks[c.index], arm, cameras, view, cfg)
+    diagnosis["last_resort"] = sum(c.last_resort for c in scores)
 
 
 def _causes(scores: list[CandidateScore]) -> dict[str, int]:

@@ -66,7 +66,7 @@ _UNKNOWN_STABILITY = 0.75  # stability term for a frame without usable neighbour
 
 
 class SegmentConfig(pydantic.BaseModel):
-    VERSION: ClassVar[int] = 7
+    VERSION: ClassVar[int] = 8  # 8: hand_reach (the hand's mask bounded per bone)
     model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
 
     method: Literal["classical", "onnx"] = "classical"
@@ -81,6 +81,8 @@ class SegmentConfig(pydantic.BaseModel):
     min_keypoints: int = pydantic.Field(6, ge=3)  # valid joints (wrist included) to seed a frame
     skin_threshold: float = pydantic.Field(0.3, gt=0, lt=1)  # skin prob that marks "probably hand"
     roi_margin: float = 0.6  # hand region = keypoint hull grown by this x hand scale
+    hand_reach: float = pydantic.Field(0.6, ge=0, description="the hand's mask ends this far past each bone, x the bone's "
+                                       "projected length (0: unbounded): an object the fingers reach toward stays out")
     forearm_width: float = 1.0  # forearm corridor width, x hand scale
     arm_search_deg: float = pydantic.Field(60.0, ge=0, le=90)  # forearm direction searched this far around the keypoint guess
     colour_gate: bool = True  # "probably hand" also needs this frame's hand colour (see _handlike)
@@ -178,6 +180,24 @@ def _draw_skeleton(shape: tuple[int, int], pts: np.ndarray, valid: np.ndarray, t
     if len(palm) >= 3:
         hull = cv2.convexHull(np.round(pts[palm]).astype(np.int32))
         cv2.fillConvexPoly(m, hull, 1)
+    return m.astype(bool)
+
+
+def _hand_reach(shape: tuple[int, int], pts: np.ndarray, valid: np.ndarray, frac: float, floor_px: float) -> np.ndarray:
+    """Where a hand's pixels may lie: each bone a capsule of radius ``frac`` x its own
+    projected length (at least ``floor_px``) and the palm's hull, so the region is narrow
+    around fingers far from the lens and wide around a palm close to it."""
+    m = np.zeros(shape, np.uint8)
+    for j in range(1, N_JOINTS):
+        p = PARENT[j]
+        if valid[j] and valid[p]:
+            r = int(round(max(frac * float(np.linalg.norm(pts[j] - pts[p])), floor_px)))
+            cv2.line(m, _ipt(pts[p]), _ipt(pts[j]), 1, 2 * r + 1)
+            for q in (pts[p], pts[j]):
+                cv2.circle(m, _ipt(q), r, 1, -1)
+    palm = [j for j in (WRIST, 1, 5, 9, 13, 17) if valid[j]]
+    if len(palm) >= 3:
+        cv2.fillConvexPoly(m, cv2.convexHull(np.round(pts[palm]).astype(np.int32)), 1)
     return m.astype(bool)
 
 
@@ -514,6 +534,15 @@ def _segment_kp(bgr: np.ndarray, ycc: np.ndarray, prob: np.ndarray, kp: _KpFrame
     fg &= (prob >= cfg.skin_gate) | sure
     if others is not None:
         fg &= ~others
+    if cfg.hand_reach > 0:
+        # A hand ends a little past its bones: GrabCut's colour model swallows a skin-coloured
+        # object the fingers reach toward (a white cup under warm light) unless it is cut here
+        # (per bone: one palm scale is too coarse when the wrist is much nearer the lens).
+        # The arm's side of the wrist is the arm's own cut's to bound.
+        near = _hand_reach(shape, kp.pts, kp.valid, cfg.hand_reach, 0.1 * s)
+        if kp.forearm is not None:
+            near |= ~_half_plane(shape, kp.pts[WRIST], kp.forearm, cfg.wrist_margin * s)
+        fg &= near
     fg = _keep_touching(fg, sure)
     if kp.forearm is None:
         return fg, fg
