@@ -3,8 +3,8 @@ has dex-retargeting 0.5.0; this project's code is not imported here).
 
     DEX_PYTHON bench/_dex_retargeting_side.py KEYPOINTS.npz URDF_DIR
 
-KEYPOINTS.npz holds ``keypoints`` (C,T,21,3) camera-frame MANO joints in metres and
-``root0`` (C,4,4), each clip's first-frame robot root pose (the same start the project's
+KEYPOINTS.npz holds ``keypoints_<i>`` (T_i,21,3) camera-frame MANO joints in metres, one
+per clip, and ``root0`` (C,4,4), each clip's first-frame robot root pose (the same start the project's
 solver gets). Position retargeting with its shipped offline Allegro config (a free 6-DoF
 root, fingertips and the PIP-level links as targets), warm-started per clip from root0,
 then sequential as its examples run it. Prints one JSON line: ms per frame (start-up
@@ -41,7 +41,8 @@ def main() -> int:
     robot = rt.optimizer.robot
     tip_ids = [robot.get_link_index(name) for name, _ in tips]
     indices = np.asarray(cfg["target_link_human_indices"])
-    for kp, root0 in zip(data["keypoints"], data["root0"]):
+    for i, root0 in enumerate(data["root0"]):
+        kp = data[f"keypoints_{i}"]  # clips of any length (real trajectories differ)
         rt.reset()
         rt.warm_start(root0[:3, 3], rotations.quaternion_from_matrix(root0[:3, :3]))
         for k in kp:

@@ -2,6 +2,7 @@
 
     .venv/bin/python bench/retarget.py [--clips 3] [--frames 48] [--trajectory kp.npy ...] [--hand-arm]
     .venv/bin/python bench/retarget.py --against-dex-retargeting /tmp/dexenv/bin/python [--trajectory kp.npy] [--repeats 3]
+        [--real [../shared]]        # real hands too: the shared EgoDex episodes' and real video's, reported apart
 
 Synthetic clips (``handedit.sources.synthetic``, keypoints exact: the known ground truth
 of the human hand) are retargeted with the per-process solver built once (build time is
@@ -63,6 +64,52 @@ def bench_hand(emb: str, clips, cfg: RetargetConfig) -> dict:
     return {"build_s": build, "ms": 1000 * secs / max(stats["frames"], 1), **stats}
 
 
+def real_trajectories(shared: Path, n_frames: int = 96) -> list[tuple[str, np.ndarray, np.ndarray, None]]:
+    """Real hands as first-class inputs: both hands of the shared EgoDex episodes (their own
+    tracked joints) and the shared real video's hand (``estimate_hands``, the pipeline's
+    hand pose from any video), each the frames where all 21 joints are valid, camera frame,
+    left hands mirrored into right ones (as the pipeline solves them)."""
+    import cv2
+
+    from handedit.camera import Intrinsics
+    from handedit.embodiments.mirror import mirror_keypoints
+    from handedit.keypoints import SIDES
+    from handedit.reasons import Reason
+    from handedit.sources.egodex import EgoDexSource, EgoDexSpec
+    from handedit.vision.estimate_hands import estimate_hands
+
+    out = []
+    root = shared / "data" / "egodex"
+    for h5 in sorted(root.glob("*/*.hdf5")) if root.is_dir() else []:
+        src = EgoDexSource(EgoDexSpec(root=root, task=h5.parent.name, episode=h5.stem))
+        n = min(n_frames, src.info().n_frames)
+        c = src.read(0, n)
+        for k, side in enumerate(SIDES):
+            ok = c.keypoints_valid[:, k].all(1)
+            kp = c.keypoints[ok, k]
+            kp = mirror_keypoints(kp) if side == "left" else kp
+            if len(kp) >= 8:
+                out.append((f"egodex {h5.parent.name}/{h5.stem} {side}", kp, np.ones(kp.shape[:2], bool), None))
+    video = shared / "data" / "real-hand-video" / "human_hand_video.mp4"
+    if video.is_file():
+        cap, frames = cv2.VideoCapture(str(video)), []
+        while len(frames) < n_frames:
+            ok, bgr = cap.read()
+            if not ok:
+                break
+            frames.append(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
+        cap.release()
+        h, w = frames[0].shape[:2]
+        est = estimate_hands(iter(frames), len(frames), Intrinsics.default_for(w, h), 30.0)
+        for k, side in enumerate(SIDES):
+            ok = (est.hand_status[:, k] == Reason.OK) & est.keypoints_valid[:, k].all(1)
+            if ok.sum() >= 8:
+                kp = est.keypoints[ok, k]
+                kp = mirror_keypoints(kp) if side == "left" else kp
+                out.append((f"real video {side} (estimate_hands)", kp, np.ones(kp.shape[:2], bool), None))
+    return out
+
+
 def print_table(title: str, rows: dict[str, dict]) -> None:
     print(f"\n{title}")
     print(f"{'hand':<12}{'build s':>8}{'ms/frame':>10}{'tip mean':>10}{'tip p95':>9}{'wrist':>8}{'lim viol':>9}{'QC rej':>8}{'frames':>8}")
@@ -94,7 +141,7 @@ def bench_hand_arm(clips) -> None:
             print(f"{emb:<16}{arm.reach:>7.3f}{dt:>9.2f}{len(res.ranking):>6d}{str(res.chosen):>7}{ee:>7.2f}")
 
 
-def against_dex_retargeting(clips, dex_python: str, robots_dir: Path, repeats: int = 3) -> None:
+def against_dex_retargeting(clips, dex_python: str, robots_dir: Path, repeats: int = 3, label: str = "") -> None:
     """The side-by-side of issue 17: the same keypoints and start through this solver and
     dex-retargeting's position mode (Allegro, its offline config), one process each, one core.
     The two sides alternate ``repeats`` times and each side's median is compared: a 2-core
@@ -114,7 +161,7 @@ def against_dex_retargeting(clips, dex_python: str, robots_dir: Path, repeats: i
     ours_ms, dex_ms = [], []
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "kp.npz"
-        np.savez(path, keypoints=np.stack([kp for _, kp, _, _ in clips]), root0=root0)
+        np.savez(path, root0=root0, **{f"keypoints_{i}": kp for i, (_, kp, _, _) in enumerate(clips)})
         env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
         for _ in range(repeats):
             ours_s, ours_tip = 0.0, []
@@ -132,7 +179,7 @@ def against_dex_retargeting(clips, dex_python: str, robots_dir: Path, repeats: i
             dex_ms.append(dex["ms_per_frame"])
     ours_mm, dex_mm = float(np.mean(np.concatenate(ours_tip))), float(np.mean(dex["tip_mm"]))
     ours, theirs = float(np.median(ours_ms)), float(np.median(dex_ms))
-    print(f"\nagainst dex-retargeting 0.5.0 (position mode, Allegro, {n} frames, same keypoints and first-frame root; "
+    print(f"\n{label}: against dex-retargeting 0.5.0 (position mode, Allegro, {n} frames, same keypoints and first-frame root; "
           f"median of {repeats} alternating runs)")
     print(f"handedit's Newton evaluates its casadi functions {get_retargeter('allegro', cfg).newton.evaluation.split(' /')[0]}")
     print(f"{'':24}{'ms/frame':>10}{'tip mm':>9}   runs (ms/frame)")
@@ -147,6 +194,10 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=48)
     ap.add_argument("--trajectory", nargs="*", default=[], help="(T,21,3) .npy files, MANO order, metres")
     ap.add_argument("--hand-arm", action="store_true")
+    ap.add_argument("--real", nargs="?", const="../shared", metavar="SHARED",
+                    help="also real hands: both hands of the shared EgoDex episodes and the shared real video's "
+                         "hand (estimate_hands), up to --real-frames each, reported apart from the synthetic clips")
+    ap.add_argument("--real-frames", type=int, default=96)
     ap.add_argument("--repeats", type=int, default=3, help="alternating runs of each side in the side-by-side (median)")
     ap.add_argument("--against-dex-retargeting", metavar="PYTHON", nargs="?", const=os.environ.get("DEX_RETARGETING_PYTHON", ""),
                     help="only the side-by-side with dex-retargeting, run by this interpreter (a venv with "
@@ -155,14 +206,24 @@ def main() -> int:
     from handedit.flows.commands.retarget import load_keypoints
 
     trajectories = [(f, *load_keypoints(f), None) for f in args.trajectory]
+    real = real_trajectories(Path(args.real).resolve(), args.real_frames) if args.real else []
+    if args.real and not real:
+        raise SystemExit(f"--real: no EgoDex episode or real video under {args.real} (the folder beside the project: "
+                         "data/egodex/<task>/<k>.hdf5, data/real-hand-video/human_hand_video.mp4)")
     if args.against_dex_retargeting is not None:
         if not args.against_dex_retargeting:
             raise SystemExit("--against-dex-retargeting needs the python of a venv with dex-retargeting 0.5.0: "
                              "python3 -m venv /tmp/dexenv && /tmp/dexenv/bin/pip install torch --index-url "
                              "https://download.pytorch.org/whl/cpu && /tmp/dexenv/bin/pip install dex-retargeting==0.5.0 six")
-        clips = synthetic_keypoints(args.clips, args.frames) + trajectories
-        against_dex_retargeting(clips, args.against_dex_retargeting, Path(os.environ["HANDEDIT_ASSET_DIRS"].split(os.pathsep)[0]),
-                                args.repeats)
+        robots = Path(os.environ["HANDEDIT_ASSET_DIRS"].split(os.pathsep)[0])
+        synthetic = synthetic_keypoints(args.clips, args.frames)
+        against_dex_retargeting(synthetic + trajectories, args.against_dex_retargeting, robots, args.repeats,
+                                f"synthetic ({args.clips} clips x {args.frames} frames)"
+                                + (f" + {len(trajectories)} trajectory file(s)" if trajectories else ""))
+        if real:
+            for name, kp, _, _ in real:
+                print(f"  real: {name}, {len(kp)} frames")
+            against_dex_retargeting(real, args.against_dex_retargeting, robots, args.repeats, "real hands")
         return 0
     cfg = RetargetConfig()
     ids = hand_ids()
@@ -172,6 +233,9 @@ def main() -> int:
     print_table("same, cold (hybrid vector+position init every frame)", {e: bench_hand(e, clips, cold) for e in ids})
     for name, kp, valid, _ in trajectories:
         print_table(f"trajectory {name}", {e: bench_hand(e, [(name, kp, valid, None)], cfg) for e in ids})
+    if real:
+        print_table("real hands: " + ", ".join(f"{name} ({len(kp)})" for name, kp, _, _ in real),
+                    {e: bench_hand(e, real, cfg) for e in ids})
     if args.hand_arm:
         bench_hand_arm(clips)
     return 0

@@ -100,6 +100,36 @@ def test_a_clear_base_beats_the_last_resort(assets):
     assert not any(c.detail.startswith("last resort") for c in hit.candidates)
 
 
+def test_a_neighbours_settled_branch_is_taken_without_the_seed_search(assets, monkeypatch):
+    """No seed keeps the full body clearance (a constant 13 cm here, below the 16.5 cm asked
+    for): the first candidate tries every seed and settles; its neighbour, hinted with that
+    branch, takes it after one solve when it keeps about as much, and searches again when not."""
+    import importlib
+
+    vb = importlib.import_module("handedit.retarget.virtual_base")
+    targets, Tb = _known_sequence()
+    arm = arm_model(EMB)
+    target = np.linalg.inv(Tb) @ targets[0]
+    solves = []
+    solve = type(arm).solve
+
+    def counted(self, *a, **k):
+        solves.append(k.get("near", False))
+        return solve(self, *a, **k)
+
+    monkeypatch.setattr(type(arm), "solve", counted)
+    seeds = [(arm.lo_s + arm.hi_s) / 2, np.zeros(arm.n)]
+    first, settled = vb._first_frame(arm, target, seeds, CFG, lambda q: 0.13)
+    assert settled == pytest.approx(0.13) and len(solves) == len(seeds) + CFG.body_seeds
+    solves.clear()
+    again, room = vb._first_frame(arm, target, [first.x] + seeds, CFG, lambda q: 0.13, hinted=True, hint_settled=settled)
+    assert solves == [True] and room == pytest.approx(0.13)  # one solve, Newton first from the hint
+    np.testing.assert_allclose(again.x, first.x, atol=1e-6)
+    solves.clear()
+    vb._first_frame(arm, target, [first.x] + seeds, CFG, lambda q: 0.13, hinted=True, hint_settled=0.2)
+    assert len(solves) == 1 + len(seeds) + CFG.body_seeds  # the neighbour kept more: search again
+
+
 def test_one_failed_frame_in_fifty_does_not_discard_a_candidate(assets):
     """critical_tolerance: 1 of 50 critical frames may fail; that frame alone is rejected."""
     targets, Tb = _known_sequence(n=50)

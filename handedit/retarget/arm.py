@@ -211,15 +211,16 @@ class ArmModel:
         return T
 
     def solve(self, target: np.ndarray, q0: np.ndarray, q_prev: np.ndarray | None = None,
-              smooth: float = 1e-2, warm: IKSolution | None = None) -> IKSolution:
+              smooth: float = 1e-2, warm: IKSolution | None = None, near: bool = False) -> IKSolution:
         """IK for base_from_wrist ``target`` (4x4) from ``q0`` (arm joints), bounded by limits.
         A warm frame (``warm``: the previous frame's solution) is solved by projected Newton
         when it stays near ``q0`` (``NEWTON_MAX_STEP``): a third of IPOPT's time on the demo
-        and EgoDex clips; every other frame by IPOPT."""
+        and EgoDex clips; every other frame by IPOPT. ``near``: ``q0`` solves a neighbouring
+        problem (the next base candidate's first frame): Newton is tried first there too."""
         q0 = np.clip(q0, self.lo_s, self.hi_s)
         p = np.concatenate([target[:3, 3], target[:3, :3].reshape(-1, order="F"),
                             q0 if q_prev is None else q_prev, [0.0 if q_prev is None else smooth]])
-        if warm is not None:
+        if warm is not None or near:
             xs, _, converged = self.newton.solve(q0, p)
             if converged and np.abs(xs - q0).max() <= NEWTON_MAX_STEP:
                 return self._solution(target, xs, np.zeros_like(xs), True)  # no bound multipliers: IPOPT's next warm start pushes them

@@ -11,9 +11,10 @@ from handedit.vision.arm import MAX_OFF_ARM
 
 class VirtualBaseConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
-    VERSION: ClassVar[int] = 5  # 3: head-torso keep-out, critical tolerance, refinement grid, plausibility ranking;
+    VERSION: ClassVar[int] = 6  # 3: head-torso keep-out, critical tolerance, refinement grid, plausibility ranking;
     # 4: the footprint is the links' visual hulls, and frames composite would drop as off-arm count against a base;
-    # 5: candidates discarded for body collisions alone are a last resort (their frames fail, not the sequence)
+    # 5: candidates discarded for body collisions alone are a last resort (their frames fail, not the sequence);
+    # 6: a candidate's first frame tries Newton from its neighbour's solution before any cold IPOPT
 
     init_back: float = Field(0.55, description="base distance behind the wrist centre, in L_r")
     init_up: float = Field(0.10, description="base height above the wrist centre, in L_r")

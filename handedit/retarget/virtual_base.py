@@ -44,7 +44,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from handedit.reasons import STATUS_DTYPE, Reason
-from handedit.retarget.arm import ArmModel, arm_model
+from handedit.retarget.arm import ArmModel, IKSolution, arm_model
 from handedit.retarget.config import VirtualBaseConfig
 from handedit.retarget.plausibility import BaseView, footprint_outside, forearm_angle, silhouette_outside
 
@@ -53,6 +53,7 @@ GRID_FORWARD = (-0.15, 0.0, 0.15)
 GRID_YAW_DEG = (-15.0, 0.0, 15.0)
 REFINE_OUTWARD = (0.0, 0.15, 0.30)  # the second grid (refine_grid), in L_r
 REFINE_DOWN = (0.0, 0.15, 0.30)
+SETTLED_SLACK_M = 0.02  # a neighbour's settled branch is taken when it keeps this much less clearance at most
 
 
 @dataclass
@@ -296,6 +297,8 @@ class _Track:
     status: np.ndarray
     pos_err: np.ndarray
     chains: np.ndarray  # (T,3,P) in the camera frame
+    settled: float | None = None  # every seed was tried on the first frame and none kept the full body clearance:
+    # the clearance (m) of the branch it settled for (a neighbouring candidate may take the same branch as it is)
 
 
 def body_distance(points: np.ndarray, frame_from_camera: np.ndarray, up: np.ndarray, head_back: float,
@@ -318,9 +321,10 @@ def body_distance(points: np.ndarray, frame_from_camera: np.ndarray, up: np.ndar
 
 def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, valid: np.ndarray,
               plane: np.ndarray | None, cfg: VirtualBaseConfig, hint: np.ndarray | None = None,
-              cameras: np.ndarray | None = None, up: np.ndarray | None = None) -> _Track:
+              cameras: np.ndarray | None = None, up: np.ndarray | None = None, hint_settled: float | None = None) -> _Track:
     """IK along the sequence for one base. ``hint``: first-frame arm joints of a neighbouring
-    candidate (tried first: neighbours differ by a few cm, so it usually converges at once)."""
+    candidate (tried first: neighbours differ by a few cm, so it usually converges at once);
+    ``hint_settled``: that neighbour's ``_Track.settled``."""
     T = len(targets)
     base_from_cam = np.linalg.inv(camera_from_base)
     shoulder_cam = camera_from_base[:3, :3] @ arm.shoulder + camera_from_base[:3, 3]
@@ -334,7 +338,7 @@ def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, 
         pts = camera_from_base[:3, :3] @ arm.chain(q)[:, body_pts] + camera_from_base[:3, 3:4]
         return body_distance(pts.T, cameras[i], up, cfg.head_back_m, cfg.torso_length_m, cfg.torso_back_m)
 
-    prev = None
+    prev, settled = None, None
     rng = np.random.default_rng(0)
     for i in np.flatnonzero(valid):
         target = base_from_cam @ targets[i]
@@ -342,8 +346,9 @@ def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, 
             seeds = ([] if hint is None else [hint]) + [(arm.lo_s + arm.hi_s) / 2, np.zeros(arm.n)]
             seeds += [rng.uniform(arm.lo_s, arm.hi_s) for _ in range(max(cfg.n_seeds - len(seeds), 0))]
             hopeless = np.linalg.norm(targets[i][:3, 3] - shoulder_cam) > arm.max_reach
-            sol = _first_frame(arm, target, seeds[: 1 if hopeless else len(seeds)], cfg,
-                               None if cameras is None else (lambda q: clearance(q, i)))
+            sol, settled = _first_frame(arm, target, seeds[: 1 if hopeless else len(seeds)], cfg,
+                                        None if cameras is None else (lambda q: clearance(q, i)),
+                                        hinted=hint is not None, hint_settled=hint_settled)
         else:
             sol = arm.solve(target, prev.x, q_prev=prev.x, smooth=cfg.smooth, warm=prev)
             if sol.pos_err_mm > cfg.pos_tol_mm or sol.rot_err_deg > cfg.rot_tol_deg:  # restart once from the seed
@@ -370,12 +375,19 @@ def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, 
             status[i] = Reason.BODY_COLLISION
         else:
             status[i] = Reason.OK
-    return _Track(arm_q, status, pos_err, chains)
+    return _Track(arm_q, status, pos_err, chains, settled)
 
 
-def _first_frame(arm: ArmModel, target: np.ndarray, seeds: list, cfg: VirtualBaseConfig, clearance=None):
+def _first_frame(arm: ArmModel, target: np.ndarray, seeds: list, cfg: VirtualBaseConfig, clearance=None,
+                 hinted: bool = False, hint_settled: float | None = None) -> tuple[IKSolution, float | None]:
     """IK of a sequence's first frame: the warm start of every later frame, so it picks the
-    arm's branch (elbow up or down, shoulder left or right). The first feasible seed wins when
+    arm's branch (elbow up or down, shoulder left or right). ``hinted``: the first seed is the
+    neighbouring candidate's solution, solved by Newton when it converges near it (the bases
+    differ by a few cm: most candidates then need no cold IPOPT); when that neighbour tried
+    every seed and settled for a branch with ``hint_settled`` clearance, the same branch is
+    taken here if it keeps about as much (``SETTLED_SLACK_M``), without the search again.
+    Returns the solution and, when every seed was tried, the clearance it settled for.
+    The first feasible seed wins when
     its links keep clear of the operator's body by ``body_radius_m`` + 5 cm (or there is no
     body to keep clear of); otherwise every seed is tried and the feasible one with the most
     clearance wins, ``body_seeds`` more random seeds included (an elbow-up branch of a UR-type
@@ -385,17 +397,20 @@ def _first_frame(arm: ArmModel, target: np.ndarray, seeds: list, cfg: VirtualBas
     if clearance is not None and cfg.body_radius_m > 0 and len(seeds) > 1:  # more branches to choose from
         rng = np.random.default_rng(1)
         seeds = list(seeds) + [rng.uniform(arm.lo_s, arm.hi_s) for _ in range(cfg.body_seeds)]
-    for s0 in seeds:
-        sol = arm.solve(target, s0)
+    for i, s0 in enumerate(seeds):
+        sol = arm.solve(target, s0, near=hinted and i == 0)
         sol_ok = sol.pos_err_mm <= cfg.pos_tol_mm and sol.rot_err_deg <= cfg.rot_tol_deg
         room = clearance(sol.x) if clearance is not None and sol_ok and cfg.body_radius_m > 0 else float("inf")
         sols.append((sol, sol_ok, room))
         if sol_ok and room >= need:
-            return sol
+            return sol, None
+        if i == 0 and hinted and sol_ok and hint_settled is not None and room >= hint_settled - SETTLED_SLACK_M:
+            return sol, room
     feasible = [(room, sol) for sol, sol_ok, room in sols if sol_ok]
     if feasible:
-        return max(feasible, key=lambda x: x[0])[1]
-    return min((s for s, _, _ in sols), key=lambda s: s.pos_err_mm + 10 * s.rot_err_deg)
+        room, best = max(feasible, key=lambda x: x[0])
+        return best, room
+    return min((s for s, _, _ in sols), key=lambda s: s.pos_err_mm + 10 * s.rot_err_deg), None
 
 
 def _score(idx: int, grid_entry, track: _Track, arm: ArmModel, valid: np.ndarray, critical: np.ndarray,
@@ -531,7 +546,8 @@ def search_virtual_base(
         first = int(np.flatnonzero(valid)[0])
         for g in grid:
             hint = tracks[-1].arm_q[first] if tracks and tracks[-1].status[first] != Reason.OUT_OF_REACH else None
-            tr = _evaluate(arm, g[3], targets, valid, support_plane, cfg, hint, cameras, up)
+            tr = _evaluate(arm, g[3], targets, valid, support_plane, cfg, hint, cameras, up,
+                           tracks[-1].settled if hint is not None else None)
             sc = _score(len(tracks), g, tr, arm, valid, critical, cfg)
             sc.stage = stage
             if sc.reason == Reason.OK and view is not None and cameras is not None:
