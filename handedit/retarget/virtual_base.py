@@ -381,17 +381,18 @@ def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, 
 def _first_frame(arm: ArmModel, target: np.ndarray, seeds: list, cfg: VirtualBaseConfig, clearance=None,
                  hinted: bool = False, hint_settled: float | None = None) -> tuple[IKSolution, float | None]:
     """IK of a sequence's first frame: the warm start of every later frame, so it picks the
-    arm's branch (elbow up or down, shoulder left or right). ``hinted``: the first seed is the
-    neighbouring candidate's solution, solved by Newton when it converges near it (the bases
-    differ by a few cm: most candidates then need no cold IPOPT); when that neighbour tried
-    every seed and settled for a branch with ``hint_settled`` clearance, the same branch is
-    taken here if it keeps about as much (``SETTLED_SLACK_M``), without the search again.
-    Returns the solution and, when every seed was tried, the clearance it settled for.
-    The first feasible seed wins when
+    arm's branch (elbow up or down, shoulder left or right). The first feasible seed wins when
     its links keep clear of the operator's body by ``body_radius_m`` + 5 cm (or there is no
     body to keep clear of); otherwise every seed is tried and the feasible one with the most
     clearance wins, ``body_seeds`` more random seeds included (an elbow-up branch of a UR-type
-    arm passes the operator's neck); with none feasible, the closest solution."""
+    arm passes the operator's neck); with none feasible, the closest solution.
+
+    ``hinted``: the first seed is the neighbouring candidate's solution, solved by Newton when
+    it converges near it (the bases differ by a few cm: most candidates need no cold IPOPT);
+    when that neighbour tried every seed and settled for a branch with ``hint_settled``
+    clearance, the same branch is taken here if it keeps about as much (``SETTLED_SLACK_M``)
+    without the search again. Returns the solution and the clearance it settled for (None
+    when it kept the full clearance or nothing was feasible)."""
     sols = []
     need = cfg.body_radius_m + cfg.link_radius + 0.05
     if clearance is not None and cfg.body_radius_m > 0 and len(seeds) > 1:  # more branches to choose from
