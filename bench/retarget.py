@@ -69,13 +69,11 @@ def real_trajectories(shared: Path, n_frames: int = 96) -> list[tuple[str, np.nd
     tracked joints) and the shared real video's hand (``estimate_hands``, the pipeline's
     hand pose from any video), each the frames where all 21 joints are valid, camera frame,
     left hands mirrored into right ones (as the pipeline solves them)."""
-    import cv2
-
-    from handedit.camera import Intrinsics
     from handedit.embodiments.mirror import mirror_keypoints
     from handedit.keypoints import SIDES
     from handedit.reasons import Reason
     from handedit.sources.egodex import EgoDexSource, EgoDexSpec
+    from handedit.sources.video import VideoSource, VideoSpec
     from handedit.vision.estimate_hands import estimate_hands
 
     out = []
@@ -91,16 +89,11 @@ def real_trajectories(shared: Path, n_frames: int = 96) -> list[tuple[str, np.nd
             if len(kp) >= 8:
                 out.append((f"egodex {h5.parent.name}/{h5.stem} {side}", kp, np.ones(kp.shape[:2], bool), None))
     video = shared / "data" / "real-hand-video" / "human_hand_video.mp4"
-    if video.is_file():
-        cap, frames = cv2.VideoCapture(str(video)), []
-        while len(frames) < n_frames:
-            ok, bgr = cap.read()
-            if not ok:
-                break
-            frames.append(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
-        cap.release()
-        h, w = frames[0].shape[:2]
-        est = estimate_hands(iter(frames), len(frames), Intrinsics.default_for(w, h), 30.0)
+    if video.is_file():  # the project's own reader: its probe, frame count and intrinsics
+        vsrc = VideoSource(VideoSpec(path=video, max_frames=n_frames))
+        vinfo = vsrc.info()
+        c = vsrc.read(0, vinfo.n_frames)
+        est = estimate_hands(iter(c.frames), len(c.frames), vinfo.intrinsics, vinfo.fps)
         for k, side in enumerate(SIDES):
             ok = (est.hand_status[:, k] == Reason.OK) & est.keypoints_valid[:, k].all(1)
             if ok.sum() >= 8:
