@@ -217,6 +217,10 @@ def main() -> int:
             for name, kp, _, _ in real:
                 print(f"  real: {name}, {len(kp)} frames")
             against_dex_retargeting(real, args.against_dex_retargeting, robots, args.repeats, "real hands")
+            for origin in ("egodex", "real video"):  # each kind of real hand apart: one must not hide the other
+                part = [t for t in real if t[0].startswith(origin)]
+                if part and len(part) < len(real):
+                    against_dex_retargeting(part, args.against_dex_retargeting, robots, args.repeats, f"real hands: {origin}")
         return 0
     cfg = RetargetConfig()
     ids = hand_ids()

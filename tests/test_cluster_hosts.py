@@ -21,7 +21,24 @@ import pytest
 from _servers import prefect_server
 
 HANDEDIT = [sys.executable, "-m", "handedit.flows.cli"]
-NET = "10.78.0"
+
+
+def _free_net() -> str:
+    """A /24 no interface or route of this machine uses yet: a bridge left by an earlier run that
+    was killed (or the machine's own network) would otherwise take the hosts' traffic."""
+    try:
+        used = subprocess.run(["ip", "-o", "addr"], capture_output=True, text=True, timeout=30).stdout
+        used += subprocess.run(["ip", "route"], capture_output=True, text=True, timeout=30).stdout
+    except (OSError, subprocess.SubprocessError):
+        used = ""
+    for k in range(os.getpid() % 200, os.getpid() % 200 + 250):
+        net = f"10.78.{k % 250}"
+        if f"{net}." not in used:
+            return net
+    return "10.78.0"
+
+
+NET = _free_net()
 BRIDGE = f"he{os.getpid() % 100000}"
 S3, SCHED, W1, W2, D1, D2 = (f"{NET}.{i}" for i in (5, 2, 3, 4, 6, 7))
 
@@ -67,16 +84,23 @@ class Lan:
         subprocess.run(["ip", "link", "del", BRIDGE], capture_output=True)
 
 
-def _wait(check, what: str, timeout: float = 120.0) -> None:
-    deadline = time.time() + timeout
+def _wait(check, what: str, timeout: float = 120.0, proc: subprocess.Popen | None = None, log: Path | None = None) -> None:
+    """Until ``check()`` is true; fails with the service's own output when its process ended or
+    the time ran out (a CI run once said only that moto "did not come up")."""
+    deadline, last = time.time() + timeout, None
     while time.time() < deadline:
         try:
             if check():
                 return
-        except Exception:  # noqa: BLE001 - not up yet
-            pass
+        except Exception as e:  # noqa: BLE001 - not up yet
+            last = e
+        if proc is not None and proc.poll() is not None:
+            break
         time.sleep(0.5)
-    pytest.fail(f"{what} did not come up in {timeout:.0f} s")
+    state = "" if proc is None else (f"; its process ended (rc {proc.returncode})" if proc.poll() is not None else "; its process runs")
+    tail = log.read_text(errors="replace")[-3000:] if log is not None and log.exists() else ""
+    routes = subprocess.run(["ip", "route"], capture_output=True, text=True).stdout
+    pytest.fail(f"{what} did not come up in {timeout:.0f} s{state}; last error: {last!r}\nroutes:\n{routes}\nits output:\n{tail}")
 
 
 @pytest.fixture(scope="module")
@@ -92,15 +116,20 @@ def lan(tmp_path_factory):
         env = {**os.environ, "AWS_ACCESS_KEY_ID": "test", "AWS_SECRET_ACCESS_KEY": "test", "AWS_DEFAULT_REGION": "us-east-1",
                "AWS_ENDPOINT_URL": f"http://{S3}:5000"}
         env.pop("PREFECT_API_URL", None)
-        procs.append(net.run(S3, [sys.executable, "-m", "moto.server", "-H", S3, "-p", "5000"], env,
-                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        moto_log = tmp_path_factory.mktemp("moto") / "moto.log"
+        with open(moto_log, "w") as log:
+            moto = net.run(S3, [sys.executable, "-m", "moto.server", "-H", S3, "-p", "5000"], env,
+                           stdout=log, stderr=subprocess.STDOUT)
+        procs.append(moto)
         server, env["PREFECT_API_URL"] = prefect_server(f"{NET}.1", tmp_path_factory.mktemp("prefect-home"), env, 240)
         procs.append(server)
         import boto3
+        from botocore.config import Config
 
+        # short timeouts, no retries: one unanswered attempt must not outlast the whole wait
         s3 = boto3.client("s3", endpoint_url=env["AWS_ENDPOINT_URL"], aws_access_key_id="test", aws_secret_access_key="test",
-                          region_name="us-east-1")
-        _wait(lambda: s3.create_bucket(Bucket="handedit"), "moto's S3")
+                          region_name="us-east-1", config=Config(connect_timeout=3, read_timeout=30, retries={"max_attempts": 1}))
+        _wait(lambda: s3.create_bucket(Bucket="handedit"), "moto's S3", 180, moto, moto_log)
         sched_env = {**env, "DASK_DISTRIBUTED__SCHEDULER__WORKER_TTL": "15s"}  # a silent worker is gone after 15 s
         procs.append(net.run(SCHED, [sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", SCHED, "--port", "8786",
                                      "--dashboard-address", f"{SCHED}:0"], sched_env,

@@ -146,3 +146,72 @@ def test_synthetic_grasp_clip(assets):
     assert set(np.unique(q.status)) <= {Reason.OK, Reason.CONTACT_DISTANCE, Reason.CONTACT_LOSS, Reason.PENETRATION}
     for i, text in q.details.items():
         assert q.status[i] >= 100 and text
+
+
+# --- the solve's contact terms (handedit.retarget.contact) ---------------------------------------
+
+
+def _box_behind_surface(rt, kp, valid, depth: float):
+    """A large box whose face lies ``depth`` inside the robot's surface on the side where the
+    surface stands furthest beyond the human keypoints (the keypoints stay outside it)."""
+    from handedit.retarget.qc import robot_surface
+
+    r = retarget(kp, valid, EMB, CFG)
+    pts = robot_surface(EMB, r.qpos[0].astype(float), r.root_pose[0])
+    axes = [s * np.eye(3)[a] for a in range(3) for s in (1.0, -1.0)]
+    d = max(axes, key=lambda d: (pts @ d).max() - (kp[0][valid[0]] @ d).max())
+    face = (pts @ d).max() - depth
+    assert face > (kp[0][valid[0]] @ d).max()  # the human keypoints are clear of it
+    centre = pts.mean(0) - (pts.mean(0) @ d) * d + (face + 0.1) * d
+    return _mesh(_box(centre, [0.1] * 3))
+
+
+def test_the_solve_keeps_a_contact_the_positions_alone_lose(assets):
+    """The human index reaches 25 mm further than the robot's and touches a small box: positions
+    alone leave every robot tip off it (CONTACT_LOSS); the touch term pins the robot's index tip
+    to the box's surface, within the paper's thresholds (unchanged)."""
+    rt, kp, valid = _own_fk()
+    it, dp = JOINT_INDEX["index_tip"], JOINT_INDEX["index_dip"]
+    d = (kp[0, it] - kp[0, dp]) / np.linalg.norm(kp[0, it] - kp[0, dp])
+    human = kp.copy()
+    human[:, it] = kp[:, it] + 0.025 * d
+    mesh = _mesh(_box(kp[0, it] + d * 0.031, [0.005] * 3))
+    seen = {}
+    for on in (False, True):
+        cfg = RetargetConfig(contact=on)
+        r = retarget(human, valid, EMB, cfg, object_mesh=mesh, object_pose=_pose(3))
+        seen[on] = retarget_qc(r, human, valid, EMB, QC, cfg, object_mesh=mesh, object_pose=_pose(3))
+    assert (seen[False].status == Reason.CONTACT_LOSS).all(), seen[False].details
+    assert (seen[True].status == Reason.OK).all(), seen[True].details
+    assert (seen[True].contact_distance_mm < QC.contact_mm).all()
+
+
+def test_the_solve_pushes_the_hand_out_of_the_object(assets):
+    """A box 14 mm into the robot's surface (the human keypoints outside it): positions alone leave
+    the robot in it (PENETRATION); the push-out planes bring it back within the QC's threshold
+    (``push_depth_mm`` is the depth they aim for), at a few mm of fingertip error."""
+    rt, kp, valid = _own_fk()
+    mesh = _box_behind_surface(rt, kp, valid, 0.014)
+    seen = {}
+    for on in (False, True):
+        cfg = RetargetConfig(contact=on)
+        r = retarget(kp, valid, EMB, cfg, object_mesh=mesh, object_pose=_pose(3))
+        seen[on] = (r, retarget_qc(r, kp, valid, EMB, QC, cfg, object_mesh=mesh, object_pose=_pose(3)))
+    assert (seen[False][1].status == Reason.PENETRATION).all()
+    r, q = seen[True]
+    assert (q.status == Reason.OK).all(), q.details
+    assert (q.penetration_mm < seen[False][1].penetration_mm - 5).all() and (r.fingertip_error_mm < 10).all()
+
+
+def test_without_an_object_nearby_the_solve_is_unchanged(assets):
+    """The contact problem is only solved near the object: an object a metre away, or none, gives
+    the very same trajectory as the positions alone."""
+    rt, kp, valid = _own_fk()
+    human = kp + np.random.default_rng(0).normal(0, 0.004, kp.shape)
+    mesh = _mesh(_box(kp[0, 0], [0.05] * 3))
+    far = _pose(3)
+    far[:, 0, 3] = 1.0
+    a = retarget(human, valid, EMB, RetargetConfig(contact=False))
+    for r in (retarget(human, valid, EMB, CFG), retarget(human, valid, EMB, CFG, object_mesh=mesh, object_pose=far)):
+        np.testing.assert_array_equal(r.qpos, a.qpos)
+        np.testing.assert_array_equal(r.root_pose, a.root_pose)

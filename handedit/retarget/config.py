@@ -72,7 +72,8 @@ class RetargetConfig(BaseModel):
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
-    VERSION: ClassVar[int] = 4  # 3: projected Newton per frame (IPOPT where it does not converge); 4: cold frames too, after a barrier path
+    VERSION: ClassVar[int] = 5  # 3: projected Newton per frame (IPOPT where it does not converge); 4: cold frames too, after a barrier path;
+    # 5: contact terms in the solve where the source has an object mesh and pose
 
     wrist_weight: float = Field(1.0, ge=0)
     fingertip_weight: float = Field(1.0, ge=0)
@@ -97,6 +98,15 @@ class RetargetConfig(BaseModel):
     contact_mm: float = Field(10.0, gt=0)
     contact_distance_mm: float = Field(20.0, gt=0)
     penetration_mm: float = Field(10.0, gt=0)
+    # contact terms in the solve (handedit.retarget.contact), where the source has an object mesh + pose
+    contact: bool = Field(True, description="keep the human's fingertip contacts and push links out of the object in the "
+                          "solve (False: positions only, the QC alone judges contact)")
+    contact_weight: float = Field(10.0, ge=0, description="per cm^2 of a touching tip's distance off its tangent plane")
+    push_weight: float = Field(50.0, ge=0, description="per cm^2 of a link's deepest sample inside its tangent plane")
+    push_depth_mm: float = Field(5.0, ge=0, description="a link deeper than this inside the object is pushed back to 1 mm "
+                                 "less (the QC rejects beyond penetration_mm; a full push-out moves the whole hand, "
+                                 "and its wrist error past wrist_reject_mm)")
+    contact_rounds: int = Field(2, ge=0, description="re-solves of a frame with push-out planes added")
     # hand-arm embodiments: the sequence-level virtual-base search and its review policy
     virtual_base: VirtualBaseConfig = Field(default_factory=VirtualBaseConfig)
 

@@ -64,16 +64,20 @@ def known_world(world: dict | None, world_from_camera: np.ndarray | None) -> boo
 def retarget_hand_arm(keypoints: np.ndarray, keypoints_valid: np.ndarray, embodiment_id: str, cfg: RetargetConfig,
                       vb_cfg: VirtualBaseConfig | None = None, world_from_camera: np.ndarray | None = None,
                       choice: int | None = None, world: dict | None = None,
-                      shoulders: np.ndarray | None = None, view: BaseView | None = None) -> HandArmResult:
+                      shoulders: np.ndarray | None = None, view: BaseView | None = None,
+                      object_mesh: tuple[np.ndarray, np.ndarray] | None = None,
+                      object_pose: np.ndarray | None = None) -> HandArmResult:
     """Whole-sequence hand-arm retargeting (see module doc). ``choice``: an operator's
     candidate index (``handedit review``), -1 to drop the sequence, None for the policy.
     ``world``: ``ClipInfo.world`` (None: no world frame); ``shoulders`` (2,3): the
     (left, right) shoulder joints in the camera frame of the first frame, or None;
-    ``view``: the camera and the human arm, for plausibility ranking and critical frames."""
+    ``view``: the camera and the human arm, for plausibility ranking and critical frames;
+    ``object_mesh``/``object_pose``: the hand's contact terms (``api.retarget``)."""
     kp = np.ascontiguousarray(keypoints, dtype=np.float32)
     va = np.ascontiguousarray(keypoints_valid, dtype=bool)
     wfc = None if world_from_camera is None else np.ascontiguousarray(world_from_camera, dtype=np.float64)
-    return _solve(embodiment_id, cfg, vb_cfg or cfg.virtual_base, choice, kp, va, wfc, world, shoulders, view)
+    return _solve(embodiment_id, cfg, vb_cfg or cfg.virtual_base, choice, kp, va, wfc, world, shoulders, view,
+                  object_mesh, object_pose)
 
 
 def critical_frames(kp: np.ndarray, va: np.ndarray, ok: np.ndarray, intr: Intrinsics | None) -> np.ndarray:
@@ -90,10 +94,10 @@ def critical_frames(kp: np.ndarray, va: np.ndarray, ok: np.ndarray, intr: Intrin
 
 def _solve(embodiment_id: str, cfg: RetargetConfig, vb_cfg: VirtualBaseConfig, choice,
            kp, va, wfc, world_desc: dict | None = None, shoulders: np.ndarray | None = None,
-           view: BaseView | None = None) -> HandArmResult:
+           view: BaseView | None = None, object_mesh=None, object_pose=None) -> HandArmResult:
     arm = arm_model(embodiment_id)
     n = len(kp)
-    hand = retarget(kp, va, arm.hand_id, cfg)
+    hand = retarget(kp, va, arm.hand_id, cfg, object_mesh=object_mesh, object_pose=object_pose)
     ok = hand.status == Reason.OK
     targets = arm.wrist_targets(hand.root_pose, hand.qpos.astype(float))
     notes: list[str] = []

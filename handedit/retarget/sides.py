@@ -76,7 +76,7 @@ def retarget_sides(keypoints: np.ndarray, keypoints_valid: np.ndarray, present: 
     for k, side in enumerate(sides):
         valid = np.asarray(keypoints_valid, bool)[:, k] & present[:, k, None]
         kpk, mesh, pose = _side_inputs(side, kp[:, k], object_mesh, object_pose)
-        res = retarget(kpk, valid, embodiment_id, cfg)
+        res = retarget(kpk, valid, embodiment_id, cfg, object_mesh=mesh, object_pose=pose)
         qc = retarget_qc(res, kpk, valid, embodiment_id, RetargetQCConfig.from_retarget(cfg), cfg,
                          object_mesh=mesh, object_pose=pose)
         if out is None:
@@ -125,7 +125,7 @@ def retarget_hand_arm_sides(keypoints: np.ndarray, keypoints_valid: np.ndarray, 
                                              None if arm_valid is None else arm_valid[:, k])
             view = BaseView(preview_intrinsics(intr, side), mirror_keypoints(limbs) if side == "left" else limbs, tracked_arm)
         res = retarget_hand_arm(kpk, valid, embodiment_id, cfg, world_from_camera=wfc, choice=choice, world=world,
-                                shoulders=sh, view=view)
+                                shoulders=sh, view=view, object_mesh=mesh, object_pose=pose)
         qc = retarget_qc(res.hand, kpk, valid, embodiment_id,
                          RetargetQCConfig.from_retarget(cfg), cfg, object_mesh=mesh, object_pose=pose)
         status, details = merge_hand_qc(res, qc)

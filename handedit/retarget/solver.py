@@ -19,6 +19,7 @@ does not converge; ``method="ipopt"`` uses IPOPT alone.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,6 +30,7 @@ from handedit.embodiments.kinematics import get_kinematics
 from handedit.embodiments.roster import UrdfAsset
 from handedit.keypoints import FINGERTIPS, JOINT_INDEX, PARENT, WRIST
 from handedit.retarget.config import RetargetConfig
+from handedit.retarget.contact import PUSH_SLOTS, ContactParams
 from handedit.retarget.newton import BoundedNewton, per_thread
 
 CM = 100.0  # metres -> centimetres inside the cost
@@ -110,6 +112,9 @@ class Retargeter:
         cost += cfg.reg_q * ca.sumsqr(qf - qn)
         x = ca.vertcat(qf, t, c)
         p = ca.vertcat(ca.vec(Y), W, q_prev, t_prev, ca.vec(R_ref), ca.vec(R_prev), s_q, s_pose)
+        self._urdf_path = str(urdf_path)
+        self._sym = (q_full, R, t, P_root, cost, x, p)  # the contact problem extends this one (``_contact_problem``)
+        self._contact: tuple | None = None
         opts = {
             "print_time": False,
             "ipopt": {
@@ -123,6 +128,7 @@ class Retargeter:
                 "warm_start_init_point": "yes", "warm_start_bound_push": 1e-6,
                 "warm_start_mult_bound_push": 1e-6, "mu_init": 1e-4,
             })
+        self._ipopt_opts = opts
         self.solver = ca.nlpsol("retarget", "ipopt", {"x": x, "p": p, "f": cost}, opts)
         self._evaluators: dict = {}
         inf = 1e20
@@ -222,8 +228,10 @@ class Retargeter:
         q_prev: np.ndarray | None = None,
         prev_pose: np.ndarray | None = None,
         warm: FrameSolution | None = None,
+        contact: ContactParams | None = None,
     ) -> FrameSolution:
-        """Solve one frame. ``q_prev`` / ``prev_pose`` switch the smoothness terms on."""
+        """Solve one frame. ``q_prev`` / ``prev_pose`` switch the smoothness terms on; an active
+        ``contact`` solves the contact problem (``contact`` module) instead."""
         qf0 = np.clip(q0[self.free], self.lower[self.free], self.upper[self.free])
         R_ref = pose0[:3, :3]
         x0 = np.concatenate([qf0, pose0[:3, 3], np.zeros(3)])
@@ -235,8 +243,12 @@ class Retargeter:
             (R_ref if prev_pose is None else prev_pose[:3, :3]).reshape(-1, order="F"),
             [0.0 if q_prev is None else 1.0, 0.0 if prev_pose is None else 1.0],
         ])
+        newton, solver = self.newton, self.solver
+        if contact is not None and contact.active:
+            newton, solver = self._contact_problem()
+            p = np.concatenate([p, contact.vector()])
         if self.cfg.method == "newton":  # cold frames first follow the barrier path (module doc)
-            xs, f, converged = self.newton.solve(x0 if warm is not None else self.newton.barrier(x0, p, BARRIER_MUS), p)
+            xs, f, converged = newton.solve(x0 if warm is not None else newton.barrier(x0, p, BARRIER_MUS), p)
             if converged:
                 return self._solution(xs, R_ref, np.zeros_like(xs), "Solve_Succeeded", f, True)
             x0 = xs  # IPOPT from the Newton point
@@ -244,8 +256,8 @@ class Retargeter:
         if warm is not None and self.cfg.warm_start:
             args["lam_x0"] = warm.lam_x
         try:
-            sol = self.solver(**args)
-            st = self.solver.stats()
+            sol = solver(**args)
+            st = solver.stats()
             status = str(st.get("return_status", ""))
             xs = np.asarray(sol["x"], float).ravel()
             lam = np.asarray(sol["lam_x"], float).ravel()
@@ -256,6 +268,47 @@ class Retargeter:
         if not ok:
             xs = x0
         return self._solution(xs, R_ref, lam, status, f, ok)
+
+    @functools.cached_property
+    def contact_links(self) -> list[str]:
+        """The links with visual surface samples: the contact problem's push-out slots, in order."""
+        from handedit.retarget.qc import _surface_samples
+
+        return [name for name in _surface_samples(self._urdf_path, 64) if name in self.kin.link_names]
+
+    def link_samples(self, q: np.ndarray, camera_from_root: np.ndarray, n: int = 64) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """Per contact link: its surface samples in the camera frame and in its own frame."""
+        from handedit.retarget.qc import _surface_samples
+
+        samples = _surface_samples(self._urdf_path, n)
+        cam, local = [], []
+        for name in self.contact_links:
+            T = camera_from_root @ self.kin.fk(q, name)
+            cam.append(samples[name] @ T[:3, :3].T + T[:3, 3])
+            local.append(samples[name])
+        return cam, local
+
+    def _contact_problem(self):
+        """(Newton, IPOPT) of the cost with the contact terms (built on first use: most frames of
+        most clips are far from any object, and these terms cost an FK per link)."""
+        if self._contact is None:
+            q_full, R, t, P_root, cost, x, p = self._sym
+            n_t, n_l = len(self.tip_rows), len(self.contact_links) * PUSH_SLOTS
+            tn, to, tw = ca.SX.sym("tn", 3, n_t), ca.SX.sym("to", n_t), ca.SX.sym("tw", n_t)
+            pp, pn = ca.SX.sym("pp", 3, n_l), ca.SX.sym("pn", 3, n_l)
+            po, pw = ca.SX.sym("po", n_l), ca.SX.sym("pw", n_l)
+            for j, r in enumerate(self.tip_rows):  # touch: the robot tip on the human tip's tangent plane
+                tip = R @ P_root[:, int(r)] + t
+                cost += tw[j] * ((ca.dot(tn[:, j], tip) - to[j]) * CM) ** 2
+            for li, name in enumerate(self.contact_links):  # push-out: samples that sank back outside their planes
+                T = self.kin.fk_expr(name, q_full)
+                for j in range(li * PUSH_SLOTS, (li + 1) * PUSH_SLOTS):
+                    pt = R @ (T[:3, :3] @ pp[:, j] + T[:3, 3]) + t
+                    cost += pw[j] * ca.fmax(0, (po[j] - ca.dot(pn[:, j], pt)) * CM) ** 2
+            p_c = ca.vertcat(p, ca.vec(tn), to, tw, ca.vec(pp), ca.vec(pn), po, pw)
+            self._contact = (BoundedNewton("retarget_contact", cost, x, p_c, self.lbx, self.ubx, self.cfg.tol),
+                             ca.nlpsol("retarget_contact", "ipopt", {"x": x, "p": p_c, "f": cost}, self._ipopt_opts))
+        return self._contact
 
     def _solution(self, xs: np.ndarray, R_ref: np.ndarray, lam: np.ndarray, status: str, f: float, ok: bool) -> FrameSolution:
         q = self.q_locked.copy()
