@@ -22,14 +22,17 @@ from handedit.flows.cli import main
 
 SPECS = Path(__file__).with_name("robot_specs.json")
 REPO = Path(__file__).resolve().parents[1]
+LATER = {"weight_scale"}  # UrdfAsset's per-robot retargeting weights (issue 38)
 
 
 def canonical_spec(emb) -> str:
     """sha256 of an embodiment's every field (numbers as floats, mappings in order), less the
-    files it came from: equal digests, equal robot."""
+    files it came from: equal digests, equal robot. Fields added since (``LATER``) count only
+    where a robot sets them."""
     def canon(o):
         if dataclasses.is_dataclass(o):
-            return {f.name: canon(getattr(o, f.name)) for f in dataclasses.fields(o) if f.name != "files"}
+            return {f.name: canon(getattr(o, f.name)) for f in dataclasses.fields(o)
+                    if f.name != "files" and not (f.name in LATER and not getattr(o, f.name))}
         if isinstance(o, dict):
             return [[k, canon(v)] for k, v in o.items()]
         if isinstance(o, (list, tuple)):
@@ -145,6 +148,29 @@ def test_a_bad_robot_file_is_one_message_naming_the_file_and_field(tmp_path, mon
     monkeypatch.setenv(ROBOT_DIRS_ENV, str(tmp_path / "missing"))
     with pytest.raises(RobotFileError, match="not a folder"):
         list_embodiments()
+
+
+def test_a_robot_file_sets_its_own_retargeting_weights(tmp_path, monkeypatch):
+    """``retarget_weights`` multiplies the run's keypoint weights for that robot alone (the built-in
+    Allegro doubles its tips); a negative multiplier is one message naming the file and field."""
+    from handedit.retarget import RetargetConfig, get_retargeter
+
+    folder = tmp_path / "robots"
+    path = _my_hand(folder)
+    data = yaml.safe_load(path.read_text())
+    data["retarget_weights"] = {"tip": 3.0, "pip": 0.0}
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    monkeypatch.setenv(ROBOT_DIRS_ENV, str(folder))
+    cfg = RetargetConfig()
+    mine, allegro = get_retargeter("myhand", cfg), get_retargeter("allegro", cfg)
+    kinds = [k.kind for k in mine.asset.keypoints]
+    for kind, m, a in zip(kinds, mine.base_w, allegro.base_w):
+        want = cfg.weight(kind) * {"tip": 3.0, "pip": 0.0}.get(kind, 1.0)
+        assert m == want and a == cfg.weight(kind) * (2.0 if kind == "tip" else 1.0), kind
+    data["retarget_weights"] = {"tip": -1.0}
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.raises(RobotFileError, match=r"myhand.yaml: field retarget_weights: .*>= 0"):
+        parse_file(path)
 
 
 def test_check_reports_the_bench_residual_and_fits_the_wrist(tmp_path, robots_dir, monkeypatch, capsys):

@@ -17,6 +17,7 @@ A hand and a hand-arm are embodiments; an arm is what a hand-arm names.
         fingers:                     # thumb: cmc, mcp, ip, tip; others: mcp, pip, dip, tip (null: none)
           thumb: [link_13.0, link_14.0, link_15.0, link_15.0_tip]
         wrist_from_root: [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0.095], [0, 0, 0, 1]]
+    retarget_weights: {tip: 2.0}     # optional: this robot's multipliers on the run's keypoint weights
 
     kind: hand_arm                   # hand_arms/<key>.yaml: an arm and a hand, by key
     name: UR5 + Shadow Hand
@@ -169,6 +170,17 @@ class HandFile(_Strict):
     materials: dict[str, RGBA] = Field(default_factory=dict, description="link regex (full match, first wins) -> RGBA")
     urdf: tuple[HandUrdf, ...] = Field(min_length=1)
     side: Literal["right", "left"] = "right"
+    retarget_weights: dict[Literal["wrist", "cmc", "mcp", "pip", "dip", "tip"], float] = Field(
+        default_factory=dict, description="this robot's multipliers on the run's keypoint weights (retarget.*_weight), "
+        "by keypoint kind: tuned on real hands (bench/retarget.py --real)")
+
+    @field_validator("retarget_weights")
+    @classmethod
+    def _weights(cls, v: dict) -> dict:
+        bad = {k: w for k, w in v.items() if not (w >= 0 and np.isfinite(w))}
+        if bad:
+            raise ValueError(f"retarget_weights {bad}: multipliers are finite and >= 0")
+        return v
 
 
 class ArmFile(_Strict):

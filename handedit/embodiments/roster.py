@@ -73,6 +73,11 @@ class UrdfAsset:
     couplings: tuple[tuple[str, str, float, float], ...] = ()
     hidden_visuals: str = ""
     linkages: tuple[Linkage, ...] = ()  # closed loops solved into polynomial mimics
+    weight_scale: tuple[tuple[str, float], ...] = ()  # (kind, multiplier): the robot's own retargeting weights
+
+    def weight(self, kind: str, base: float) -> float:
+        """A keypoint kind's weight in the retargeting cost: the run's, times this robot's multiplier."""
+        return base * dict(self.weight_scale).get(kind, 1.0)
 
     @property
     def wrist_from_root_matrix(self) -> np.ndarray:
@@ -198,8 +203,9 @@ def _keypoints(u) -> tuple[KeypointLink, ...]:
     return tuple(out)
 
 
-def _hand_asset(u) -> UrdfAsset:
+def _hand_asset(u, weights: dict | None = None) -> UrdfAsset:
     return UrdfAsset(
+        weight_scale=tuple(sorted((k, float(w)) for k, w in (weights or {}).items())),
         source=u.source, path=u.path, package=u.package, keypoints=_keypoints(u), wrist_from_root=u.wrist_from_root,
         locked_joints=tuple((n, float(v)) for n, v in u.locked_joints.items()), mount_at_root=u.mount_at_root,
         couplings=tuple((c.joint, c.follows, float(c.multiplier), float(c.offset)) for c in u.couplings),
@@ -229,7 +235,8 @@ def _build(files: tuple) -> Roster:
     by_kind: dict[str, dict] = {"hand": {}, "arm": {}, "hand_arm": {}}
     for key, path, f in files:
         by_kind[f.kind][key] = (path, f)
-    hands = {k: HandSpec(assets=tuple(_hand_asset(u) for u in f.urdf), side=f.side) for k, (_, f) in by_kind["hand"].items()}
+    hands = {k: HandSpec(assets=tuple(_hand_asset(u, f.retarget_weights) for u in f.urdf), side=f.side)
+             for k, (_, f) in by_kind["hand"].items()}
     arms = {k: _arm_spec(f) for k, (_, f) in by_kind["arm"].items()}
     embs: dict[str, Embodiment] = {}
     for k, (path, f) in by_kind["hand"].items():

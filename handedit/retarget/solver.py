@@ -78,7 +78,7 @@ class Retargeter:
 
         kps = asset.keypoints
         self.mano_idx = np.array([k.mano for k in kps], dtype=int)
-        self.base_w = np.array([cfg.weight(k.kind) for k in kps], dtype=float)
+        self.base_w = np.array([asset.weight(k.kind, cfg.weight(k.kind)) for k in kps], dtype=float)
         self.tip_rows = np.array([i for i, k in enumerate(kps) if k.mano in FINGERTIPS], dtype=int)
         self.wrist_row = next(i for i, k in enumerate(kps) if k.mano == WRIST)
         self.required = sorted({WRIST, 5, 9, 17})  # palm frame of the human keypoints
