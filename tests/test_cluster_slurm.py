@@ -7,6 +7,7 @@ mid-run (``scancel``)."""
 from __future__ import annotations
 
 import os
+import random
 import socket
 import subprocess
 import sys
@@ -22,31 +23,37 @@ REPO = Path(__file__).resolve().parents[1]
 HANDEDIT = [sys.executable, "-m", "handedit.flows.cli"]
 
 
-def _free_port_pair() -> int:
-    for _ in range(50):
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            p = s.getsockname()[1]
-        if p < 65000:
-            with socket.socket() as a, socket.socket() as b:
-                try:
-                    a.bind(("127.0.0.1", p))
-                    b.bind(("127.0.0.1", p + 1))
-                    return p
-                except OSError:
-                    continue
-    raise RuntimeError("no two free consecutive ports")
+def _free_port_pair(rng: random.Random) -> int:
+    """Two consecutive ports free on every interface (slurmctld and slurmd bind 0.0.0.0), drawn
+    below Linux's ephemeral range: a port the kernel just gave a client (or a server on one
+    interface) passes a 127.0.0.1 check and still makes slurmd's bind fail."""
+    for _ in range(200):
+        p = rng.randrange(20000, 32000)
+        with socket.socket() as a, socket.socket() as b:
+            try:
+                a.bind(("", p))
+                b.bind(("", p + 1))
+                return p
+            except OSError:
+                continue
+    raise RuntimeError("no two free consecutive ports in 20000-32000")
 
 
 @pytest.fixture(scope="module")
 def slurm(tmp_path_factory):
     if os.geteuid() != 0:
         pytest.fail("the Slurm test starts slurmctld and slurmd as root (CI runs as root)")
-    d = tmp_path_factory.mktemp("slurm")
-    env = {**os.environ, "SLURM_PORT": str(_free_port_pair())}
-    start = subprocess.run(["bash", str(REPO / "deploy" / "slurm-local.sh"), "start", str(d)], env=env, capture_output=True,
-                           text=True, timeout=600)
-    assert start.returncode == 0, start.stderr
+    rng, errors = random.Random(os.getpid()), []
+    for _ in range(3):  # a port taken between the check and slurmd's bind: start again on others
+        d = tmp_path_factory.mktemp("slurm")
+        env = {**os.environ, "SLURM_PORT": str(_free_port_pair(rng))}
+        start = subprocess.run(["bash", str(REPO / "deploy" / "slurm-local.sh"), "start", str(d)], env=env,
+                               capture_output=True, text=True, timeout=600)
+        if start.returncode == 0:
+            break
+        errors.append(start.stderr)
+        subprocess.run(["bash", str(REPO / "deploy" / "slurm-local.sh"), "stop", str(d)], env=env, timeout=60)
+    assert start.returncode == 0, "\n".join(errors)
     conf = start.stdout.strip().rsplit("=", 1)[-1]
     env["SLURM_CONF"] = conf
     yield env, d

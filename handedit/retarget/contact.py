@@ -12,10 +12,13 @@ solve keep the contact instead (``solver.Retargeter``'s contact problem):
   the object has its deepest samples pushed back towards the tangent planes at their closest
   surface points, to 1 mm less deep than that, and the frame is solved again from its own
   solution (``contact_rounds`` times at most). A re-solve that would take the fingertips or the
-  wrist past the QC's error thresholds is not kept: it trades one rejection for another.
+  wrist past the QC's error thresholds is not kept: it trades one rejection for another. Where
+  the hand stays deeper than the QC allows, the frame is also solved without the touch terms
+  (they may be what pulled it in) and the shallower solution kept (``api.retarget``).
 
-Planes are fixed per solve (linearised contact), so the problem stays a smooth NLP of the same
-variables; ``retarget_qc`` still judges the result against the mesh with the paper's thresholds.
+Planes are fixed per solve (linearised contact), so the problem keeps its variables and a cost
+that is once differentiable everywhere (the push-out term is a squared hinge);
+``retarget_qc`` still judges the result against the mesh with the paper's thresholds.
 """
 
 from __future__ import annotations
