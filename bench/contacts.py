@@ -28,24 +28,7 @@ os.environ.setdefault("HANDEDIT_ASSET_DIRS", str(Path(__file__).resolve().parent
 from handedit.embodiments import EmbodimentError, list_embodiments  # noqa: E402
 from handedit.reasons import Reason  # noqa: E402
 from handedit.retarget import RetargetConfig, RetargetQCConfig, get_retargeter, retarget, retarget_qc  # noqa: E402
-
-
-def grasp_clips(n_clips: int, n_frames: int) -> list[tuple[str, np.ndarray, np.ndarray, tuple, np.ndarray]]:
-    """(clip, keypoints (T,21,3) camera frame, valid, object mesh, camera_from_object (T,4,4)), no pixels."""
-    from handedit.sources.synthetic import SyntheticSource, frame_keypoints, frame_state, make_clip_specs
-
-    out = []
-    for spec in make_clip_specs(n_clips, n_frames=n_frames):
-        src = SyntheticSource(spec)
-        kps, poses = [], []
-        for t in range(n_frames):
-            st = frame_state(src.plan, t, n_frames)
-            cw = np.linalg.inv(st.world_from_camera)
-            kps.append(frame_keypoints(src.plan, st) @ cw[:3, :3].T + cw[:3, 3])
-            poses.append(cw @ st.world_from_object)
-        kp = np.array(kps)
-        out.append((spec.clip_id, kp, kp[..., 2] > 0.01, src.object_mesh(), np.array(poses)))
-    return out
+from handedit.retarget.quality import synthetic_grasps  # noqa: E402
 
 
 def run(emb: str, clips, cfg: RetargetConfig) -> dict:
@@ -72,7 +55,7 @@ def main() -> None:
     ap.add_argument("--embodiment", action="append")
     args = ap.parse_args()
     ids = args.embodiment or [e.id for e in list_embodiments() if e.track == "hand"]
-    clips = grasp_clips(args.clips, args.frames)
+    clips = synthetic_grasps(args.clips, args.frames)
     off, on = RetargetConfig(contact=False), RetargetConfig()
     print(f"{args.clips} synthetic grasp clips x {args.frames} frames; contact terms off | on")
     print(f"{'hand':<18}{'touch':>6}  {'CONTACT_LOSS':>13}{'PENETRATION':>13}{'CONTACT_DIST':>13}{'other':>9}"

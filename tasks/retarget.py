@@ -60,9 +60,9 @@ def _object_mesh(job: ChunkJob):
     return open_source_json(job.plan.source_json).object_mesh() if job.plan.has_object else None
 
 
-def _method(base: str, job: ChunkJob) -> str:
+def _method(base: str, job: ChunkJob, config: RetargetConfig) -> str:
     """The solve as provenance names it: "+contact" where the source's object mesh entered it."""
-    return base + ("+contact" if job.plan.has_object and RetargetConfig(**job.params).contact else "")
+    return base + ("+contact" if job.plan.has_object and config.contact else "")
 
 
 def _output(res: SidesResult, inp: dict, method: str, extra: dict) -> StageOutput:
@@ -80,10 +80,11 @@ def body(inp: Inputs, job: ChunkJob) -> StageOutput:
     if job.track == "hand_arm":
         return _hand_arm_body(inp, job)
     arrays = _inputs(inp, job)
+    config = RetargetConfig(**job.params)
     res = retarget_sides(arrays["reg_keypoints"], arrays["reg_keypoints_valid"], arrays["ready"], job.plan.hands,
-                         job.unit.embodiment, RetargetConfig(**job.params), object_mesh=_object_mesh(job),
+                         job.unit.embodiment, config, object_mesh=_object_mesh(job),
                          object_pose=arrays.get("object_pose"))
-    return _output(res, arrays, _method("casadi:ipopt-hybrid", job), {})
+    return _output(res, arrays, _method("casadi:ipopt-hybrid", job, config), {})
 
 
 def _hand_arm_body(inp: Inputs, job: ChunkJob) -> StageOutput:
@@ -117,7 +118,7 @@ def _hand_arm_body(inp: Inputs, job: ChunkJob) -> StageOutput:
         if side == "left":  # rendered in the mirrored view: flip back
             ego, third = ego[..., ::-1, :], third[..., ::-1, :]
         previews[side] = inp.write_previews(cands, frames, ego, third, side=side)
-    return _output(res, arrays, _method("casadi:ipopt-hybrid+virtual-base", job), {"virtual_base": res.virtual_base, "previews": previews})
+    return _output(res, arrays, _method("casadi:ipopt-hybrid+virtual-base", job, config), {"virtual_base": res.virtual_base, "previews": previews})
 
 
 def _side_world(wfc: np.ndarray, side: str) -> np.ndarray:

@@ -63,7 +63,7 @@ class RetargetQC:
 
 
 @functools.lru_cache(maxsize=16)
-def _surface_samples(urdf_path: str, n: int) -> dict[str, np.ndarray]:
+def surface_samples(urdf_path: str, n: int) -> dict[str, np.ndarray]:
     """link -> (n,3) points on its visual meshes, in the link frame."""
     urdf = load_urdf(urdf_path, load_meshes=False)
     rng = np.random.default_rng(0)
@@ -91,7 +91,7 @@ def robot_surface(embodiment_id: str, q: np.ndarray, camera_from_root: np.ndarra
     """(N,3) surface samples of the robot hand at ``q`` in the camera frame."""
     ra = resolve_asset(get_embodiment(embodiment_id))
     kin = get_kinematics(ra.path)
-    samples = _surface_samples(str(ra.path), n)
+    samples = surface_samples(str(ra.path), n)
     parts = []
     for link, p in samples.items():
         T = camera_from_root @ kin.fk(q, link)

@@ -10,21 +10,32 @@ from __future__ import annotations
 import numpy as np
 
 
+def _synthetic_clips(n_clips: int, n_frames: int):
+    """Per clip: (source, keypoints (T,21,3) camera frame, world_from_camera, camera_from_object), no pixels."""
+    from handedit.sources.synthetic import SyntheticSource, frame_keypoints, frame_state, make_clip_specs
+
+    for spec in make_clip_specs(n_clips, n_frames=n_frames):
+        src = SyntheticSource(spec)
+        kps, wfc, cfo = [], [], []
+        for t in range(n_frames):
+            st = frame_state(src.plan, t, n_frames)
+            cw = np.linalg.inv(st.world_from_camera)
+            kps.append(frame_keypoints(src.plan, st) @ cw[:3, :3].T + cw[:3, 3])
+            wfc.append(st.world_from_camera)
+            cfo.append(cw @ st.world_from_object)
+        yield src, np.array(kps), np.array(wfc), np.array(cfo)
+
+
 def synthetic_keypoints(n_clips: int = 3, n_frames: int = 48) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
     """(name, keypoints (T,21,3) camera frame, valid, world_from_camera) without rendering pixels."""
-    from handedit.sources.synthetic import frame_keypoints, frame_state, make_clip_specs, make_plan
+    return [(src.spec.clip_id, kp, np.ones((n_frames, 21), bool), wfc) for src, kp, wfc, _ in _synthetic_clips(n_clips, n_frames)]
 
-    out = []
-    for spec in make_clip_specs(n_clips, n_frames=n_frames):
-        plan = make_plan(spec)
-        kps, wfc = [], []
-        for t in range(n_frames):
-            st = frame_state(plan, t, n_frames)
-            cw = np.linalg.inv(st.world_from_camera)
-            kps.append(frame_keypoints(plan, st) @ cw[:3, :3].T + cw[:3, 3])
-            wfc.append(st.world_from_camera)
-        out.append((spec.clip_id, np.array(kps), np.ones((n_frames, 21), bool), np.array(wfc)))
-    return out
+
+def synthetic_grasps(n_clips: int = 8, n_frames: int = 48) -> list[tuple[str, np.ndarray, np.ndarray, tuple, np.ndarray]]:
+    """(name, keypoints, valid (in front of the camera, as the source marks them), object mesh,
+    camera_from_object (T,4,4)): the grasp clips with what the contact terms and QC need."""
+    return [(src.spec.clip_id, kp, kp[..., 2] > 0.01, src.object_mesh(), cfo)
+            for src, kp, _, cfo in _synthetic_clips(n_clips, n_frames)]
 
 
 def residual_stats(results: list, lower: np.ndarray, upper: np.ndarray) -> dict:

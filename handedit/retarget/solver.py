@@ -272,15 +272,15 @@ class Retargeter:
     @functools.cached_property
     def contact_links(self) -> list[str]:
         """The links with visual surface samples: the contact problem's push-out slots, in order."""
-        from handedit.retarget.qc import _surface_samples
+        from handedit.retarget.qc import surface_samples
 
-        return [name for name in _surface_samples(self._urdf_path, 64) if name in self.kin.link_names]
+        return [name for name in surface_samples(self._urdf_path, 64) if name in self.kin.link_names]
 
     def link_samples(self, q: np.ndarray, camera_from_root: np.ndarray, n: int = 64) -> tuple[list[np.ndarray], list[np.ndarray]]:
         """Per contact link: its surface samples in the camera frame and in its own frame."""
-        from handedit.retarget.qc import _surface_samples
+        from handedit.retarget.qc import surface_samples
 
-        samples = _surface_samples(self._urdf_path, n)
+        samples = surface_samples(self._urdf_path, n)
         cam, local = [], []
         for name in self.contact_links:
             T = camera_from_root @ self.kin.fk(q, name)
