@@ -348,9 +348,14 @@ def main() -> None:
     tmp = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="handedit-egodex-"))
     tmp.mkdir(parents=True, exist_ok=True)  # Prefect's home below it
     os.environ.setdefault("PREFECT_HOME", str(tmp / "prefect"))
-    with prefect_test_harness(server_startup_timeout=180), \
-            LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                         dashboard_address="127.0.0.1:0") as cluster:
+    try:
+        cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                               dashboard_address="127.0.0.1:0")
+    except (TimeoutError, OSError) as e:  # a machine too busy to start 2 worker processes in Dask's time
+        sys.exit(f"bench/egodex.py: the local Dask cluster did not start ({type(e).__name__}: {e}). The machine is "
+                 "probably too busy to start its worker processes in time: rerun when it is quieter, or with fewer "
+                 "--workers.")
+    with prefect_test_harness(server_startup_timeout=180), cluster:
         config = CurateConfig(out=tmp / "handedit.zarr", sources=[tree], embodiments=embs, frames_per_chunk=16,
                               cluster=ClusterConfig(address=cluster.scheduler_address))
         t0 = time.perf_counter()

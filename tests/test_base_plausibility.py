@@ -22,7 +22,7 @@ from handedit.retarget.virtual_base import (
     refine_grid,
     search_virtual_base,
 )
-from test_virtual_base import UP, UR5_Q, _known_sequence, _true_base
+from test_virtual_base import UP, _known_sequence, _q_offsets, _true_base
 
 CFG = VirtualBaseConfig()
 EMB = "ur5_shadow"
@@ -124,7 +124,7 @@ def test_a_neighbours_settled_branch_is_taken_without_the_seed_search(assets, mo
     solves.clear()
     again, room = vb._first_frame(arm, target, [first.x] + seeds, CFG, lambda q: 0.13, hinted=True, hint_settled=settled)
     assert solves == [True] and room == pytest.approx(0.13)  # one solve, Newton first from the hint
-    np.testing.assert_allclose(again.x, first.x, atol=1e-6)
+    np.testing.assert_allclose(again.x, first.x, atol=1e-4)  # the same branch (Shadow's wrist joints make the arm redundant)
     solves.clear()
     vb._first_frame(arm, target, [first.x] + seeds, CFG, lambda q: 0.13, hinted=True, hint_settled=0.2)
     assert len(solves) == 1 + len(seeds) + CFG.body_seeds  # the neighbour kept more: search again
@@ -266,7 +266,7 @@ def test_search_ranks_by_footprint(assets):
     cams = _camera_at(np.array([0.0, 0.0, -0.6]), n)  # behind the scene, looking along +z
     cam_from = np.linalg.inv(cams[0])
     wrist = (cam_from[:3, :3] @ targets[:, :3, 3].T + cam_from[:3, 3:4]).T
-    chain = Tb[:3, :3] @ arm.chain(np.asarray((arm.lo_s + arm.hi_s) / 2 + np.array(UR5_Q))) + Tb[:3, 3:4]
+    chain = Tb[:3, :3] @ arm.chain(np.asarray((arm.lo_s + arm.hi_s) / 2 + _q_offsets(arm))) + Tb[:3, 3:4]
     elbow = cam_from[:3, :3] @ chain[:, np.flatnonzero(arm.proximal)[1]] + cam_from[:3, 3]
     limbs = np.stack([np.stack([w, w, elbow, elbow + (0, -0.1, 0)]) for w in wrist])
     intr = Intrinsics(400.0, 400.0, 320.0, 240.0, 640, 480)

@@ -40,12 +40,17 @@ UR5_Q = (0.3, -1.0, 1.2, -0.8, -1.2, 0.2)  # offsets from mid-range: an elbow-up
 XARM_Q = (-0.228, -0.017, 0.467, 0.521, -0.171, 0.086, -0.214)  # its elbow height varies across the grid
 
 
+def _q_offsets(arm, q_off=UR5_Q) -> np.ndarray:
+    """Joint offsets from mid-range: the hand's own wrist joints (Shadow's, moved by the arm IK) at 0."""
+    return np.r_[q_off, np.zeros(arm.n - len(q_off))]
+
+
 def _known_sequence(n: int = 6, seed: int = 3, emb: str = EMB, q_off=UR5_Q):
     """Wrist targets produced by the arm's own FK from a known base along a joint path."""
     arm = arm_model(emb)
     rng = np.random.default_rng(seed)
     mid = (arm.lo_s + arm.hi_s) / 2
-    qa = mid + np.array(q_off)
+    qa = mid + _q_offsets(arm, q_off)
     qb = qa + rng.normal(0, 0.15, arm.n)
     Tb = _true_base()
     Q = np.stack([qa * (1 - s) + qb * s for s in np.linspace(0, 1, n)])

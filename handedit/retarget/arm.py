@@ -7,8 +7,13 @@ hand + fixed mount), or, for the ids in ``ASSEMBLIES``, from a dex-urdf ``assemb
 loaded directly. The "human wrist -> robot wrist/TCP" SE(3) is fixed per embodiment: the
 hand's ``wrist_from_root`` (roster) plus the hand URDF's own chain to its wrist keypoint
 link, a link present in both URDFs (``name_map`` renames it in the composition). The arm
-joints are the actuated joints on the path from the root to that link, minus joints the
-hand retargeter locks (Shadow's WRJ1/WRJ2), which keep their locked values.
+joints are the actuated joints on the path from the root to that link. That includes the
+hand's own wrist joints (Shadow's WRJ1/WRJ2, ORCA's wrist), which the hand retargeter locks
+(its free root pose does their job): here they are what lets the robot's forearm follow the
+human's when the human wrist bends. Locked at 0, the forearm continued the palm, and on a
+clip where the left hand works in front of the chest (EgoDex add_remove_lid) Panda+ORCA and
+UR5+Shadow put their wrists inside the operator's torso in 75 and 50 of 94 frames, for
+every base.
 """
 
 from __future__ import annotations
@@ -84,7 +89,7 @@ class ArmModel:
         self.path_links = path
         on_path = [self.kin._joints[l].name for l in path[1:]]  # joints whose child is on the path
         names = self.kin.joint_names
-        self.arm_idx = np.array([names.index(n) for n in on_path if n in names and n not in locked], dtype=int)
+        self.arm_idx = np.array([names.index(n) for n in on_path if n in names], dtype=int)
         self.arm_joint_names = [names[i] for i in self.arm_idx]
         self.q_fixed = self.kin.neutral()
         for n, v in locked.items():
@@ -137,7 +142,7 @@ class ArmModel:
         self.newton = BoundedNewton("arm_ik", cost, qa, params, self.lo_s, self.hi_s, 1e-8)  # warm frames (solve)
         self.reach = float(src.reach) if src.reach else self._nominal_reach()
         # beyond L_r plus the flange->wrist length no orientation reaches the target
-        last = self.kin._by_name[self.arm_joint_names[-1]].child
+        last = self.kin._by_name[[n for n in self.arm_joint_names if n not in locked][-1]].child
         wrist = self.wrist_pose((self.lo_s + self.hi_s) / 2)
         flange = self.kin.fk(self.full_q((self.lo_s + self.hi_s) / 2), last)[:3, 3]
         self.max_reach = self.reach + float(np.linalg.norm(wrist[:3, 3] - flange))

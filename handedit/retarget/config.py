@@ -11,10 +11,12 @@ from handedit.vision.arm import MAX_OFF_ARM
 
 class VirtualBaseConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
-    VERSION: ClassVar[int] = 6  # 3: head-torso keep-out, critical tolerance, refinement grid, plausibility ranking;
+    VERSION: ClassVar[int] = 7  # 3: head-torso keep-out, critical tolerance, refinement grid, plausibility ranking;
     # 4: the footprint is the links' visual hulls, and frames composite would drop as off-arm count against a base;
     # 5: candidates discarded for body collisions alone are a last resort (their frames fail, not the sequence);
-    # 6: a candidate's first frame tries Newton from its neighbour's solution before any cold IPOPT
+    # 6: a candidate's first frame tries Newton from its neighbour's solution before any cold IPOPT;
+    # 7: the hand's own wrist joints (Shadow, ORCA) are arm joints of the IK (``arm.ArmModel``); the dual-arm
+    # check tries the best dual_arm_candidates of each side, not 3
 
     init_back: float = Field(0.55, description="base distance behind the wrist centre, in L_r")
     init_up: float = Field(0.10, description="base height above the wrist centre, in L_r")
@@ -54,6 +56,8 @@ class VirtualBaseConfig(BaseModel):
                             "the operator's body")
     review: Literal["auto_top1", "manual"] = "auto_top1"
     top_k: int = Field(3, ge=1)
+    dual_arm_candidates: int = Field(9, ge=1, description="the dual-arm check tries pairs of each side's best this many "
+                                     "bases (a lower-ranked one is taken only where the better ones collide)")
     replay_frames: int = Field(24, ge=3, description="review: manual: frames of each top candidate's replay preview, evenly "
                                "spaced over the sequence (auto_top1 keeps stills of the first, middle and last frame)")
 

@@ -6,9 +6,12 @@ and object reflected, the result mapped back (same qpos, pose ``left_pose(T)``) 
 the mirrored URDF renders it. Absent sides (not in view) are ``ABSENT``.
 
 Hand-arm embodiments get one virtual base per side (each from its own shoulder when the
-source tracks shoulders), and the chosen pair is checked for dual-arm collision: the
-top-3 x top-3 candidate pairs are tried best first, and when every pair collides the
-colliding frames of the best pair are rejected (``COLLISION``) on both sides.
+source tracks shoulders), and the chosen pair is checked for dual-arm collision. Where it
+collides, the pair of each side's best ``dual_arm_candidates`` that keeps the most frames
+(both arms valid, clear of each other) is taken instead, and its colliding frames are
+rejected (``COLLISION``) on both sides. Not only the top 3: yaw variants of one base often
+fill a side's top 3 with the same arm motion (EgoDex add_remove_lid, Panda+ORCA: every top-3
+pair collides in 50 of 94 frames).
 """
 
 from __future__ import annotations
@@ -171,28 +174,38 @@ def _dual_arm(out: SidesResult, sides, embodiment_id: str, cfg: RetargetConfig, 
         return
     to_common = {k: (_MX if sides[k] == "left" else np.eye(3)) for k in (0, 1)}  # mirrored view -> real
 
+    cache: dict[tuple[int, int], np.ndarray] = {}
+
     def chains(k: int, cand: int) -> np.ndarray:
-        T = vbs[k].candidates[cand].camera_from_base
-        ch = np.stack([T[:3, :3] @ arm.chain(q) + T[:3, 3:4] for q in vbs[k].arm_tracks[cand]])
-        return np.einsum("ij,tjp->tip", to_common[k], ch)
+        if (k, cand) not in cache:
+            T = vbs[k].candidates[cand].camera_from_base
+            ch = np.stack([T[:3, :3] @ arm.chain(q) + T[:3, 3:4] for q in vbs[k].arm_tracks[cand]])
+            cache[k, cand] = np.einsum("ij,tjp->tip", to_common[k], ch)
+        return cache[k, cand]
+
+    def both_ok(p: tuple[int, int]) -> np.ndarray:
+        return (vbs[0].frame_status[p[0]] == Reason.OK) & (vbs[1].frame_status[p[1]] == Reason.OK)
 
     def collisions(i: int, j: int) -> np.ndarray:
-        a, b = chains(0, i), chains(1, j)
-        both = (vbs[0].frame_status[i] == Reason.OK) & (vbs[1].frame_status[j] == Reason.OK)
+        a, b, both = chains(0, i), chains(1, j), both_ok((i, j))
         return np.array([both[t] and arms_collide(a[t], arm.moving, b[t], arm.moving, radius) for t in range(len(a))])
 
     pinned = {k: res[k].virtual_base.selected_by.startswith("review:") for k in (0, 1)}
-    opts = {k: ([vbs[k].chosen] if pinned[k] else vbs[k].ranking[:3]) for k in (0, 1)}
-    pairs = sorted(((i, j) for i in opts[0] for j in opts[1]),
-                   key=lambda p: (opts[0].index(p[0]) + opts[1].index(p[1]), opts[0].index(p[0])))
-    best, hit = None, None
-    for i, j in pairs:
-        c = collisions(i, j)
-        if not c.any():
-            best, hit = (i, j), c
-            break
-        if best is None:
-            best, hit = (i, j), c
+    n_opts = cfg.virtual_base.dual_arm_candidates
+    opts = {k: ([vbs[k].chosen] if pinned[k] else vbs[k].ranking[:n_opts]) for k in (0, 1)}
+    rank = {p: (opts[0].index(p[0]) + opts[1].index(p[1]), opts[0].index(p[0])) for p in
+            ((i, j) for i in opts[0] for j in opts[1])}
+
+    first = min(rank, key=rank.get)
+    best, hit = first, collisions(*first)
+    if hit.any():  # the pair that keeps the most frames clear of each other (ties: the better ranked)
+        kept = int((both_ok(first) & ~hit).sum())
+        for p in sorted(rank, key=lambda p: (-int(both_ok(p).sum()), rank[p])):
+            if int(both_ok(p).sum()) <= kept:
+                break  # none further on can keep more
+            c = collisions(*p)
+            if int((both_ok(p) & ~c).sum()) > kept:
+                best, hit, kept = p, c, int((both_ok(p) & ~c).sum())
     i, j = best
     for k, cand in ((0, i), (1, j)):
         if cand != vbs[k].chosen:  # a lower-ranked base avoids the other arm: re-solve that side with it
@@ -203,7 +216,8 @@ def _dual_arm(out: SidesResult, sides, embodiment_id: str, cfg: RetargetConfig, 
                 if out.hand_status[t, k] == Reason.OK:
                     out.hand_status[t, k] = Reason.COLLISION
                     out.details[(int(t), k)] = "dual-arm collision with the other arm"
-        out.notes.append(f"dual-arm check: {int(hit.sum())} frame(s) collide for every top-3 pair; rejected on both sides")
+        out.notes.append(f"dual-arm check: {int(hit.sum())} frame(s) of the pair that keeps the most frames "
+                         f"(of each side's top {n_opts}) collide; rejected on both sides")
     else:
         out.notes.append(f"dual-arm check: bases ({i}, {j}) are collision-free")
     for k, side in enumerate(sides):
