@@ -151,6 +151,32 @@ def test_one_failed_frame_in_fifty_does_not_discard_a_candidate(assets):
     assert set(lenient.ranking) >= set(res.ranking) and lenient.chosen == res.chosen
 
 
+def test_a_candidate_past_its_critical_tolerance_is_not_solved_further(assets):
+    """Once more critical frames fail than the tolerance allows (1 of 50 here), the candidate
+    is discarded whatever follows: the rest of the sequence is not solved, and the verdict is
+    the one the whole sequence gives."""
+    import importlib
+
+    vb = importlib.import_module("handedit.retarget.virtual_base")
+    targets, Tb = _known_sequence(n=50)
+    arm = arm_model(EMB)
+    far = Tb.copy()
+    far[:3, 3] += Tb[:3, 0] * 3.0 * arm.max_reach  # every target out of reach of this base
+    valid = np.ones(len(targets), bool)
+    whole = vb._evaluate(arm, far, targets, valid, None, CFG)
+    cut = vb._evaluate(arm, far, targets, valid, None, CFG, critical=valid)
+    assert whole.stopped is None and (whole.status == Reason.OUT_OF_REACH).all()
+    assert cut.stopped == 1 and (cut.status[:2] == Reason.OUT_OF_REACH).all()
+    assert (cut.status[2:] == Reason.NO_VALID_BASE).all()  # not solved
+    entry = (0.0, 0.0, 0.0, far)
+    a, b = (vb._score(0, entry, t, arm, valid, valid, CFG) for t in (whole, cut))
+    assert a.reason == b.reason == Reason.OUT_OF_REACH and "where the search stopped" in b.detail
+    # a candidate within its tolerance is solved to the end, the same as without the rule
+    near = vb._evaluate(arm, Tb, targets, valid, None, CFG, critical=valid)
+    assert near.stopped is None and (near.status == Reason.OK).all()
+    np.testing.assert_array_equal(near.arm_q, vb._evaluate(arm, Tb, targets, valid, None, CFG).arm_q)
+
+
 def test_critical_frames_are_hands_in_view():
     kp = np.zeros((3, 21, 3))
     kp[:, :, 2] = 0.5

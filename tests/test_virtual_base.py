@@ -100,7 +100,8 @@ def test_beyond_reach_is_rejected(assets):
     res = search_virtual_base(far, np.ones(len(far), bool), EMB, CFG.model_copy(update={"n_seeds": 2}), up=UP, init_base=Tb)
     assert res.reason == Reason.NO_VALID_BASE and res.chosen is None and res.ranking == []
     assert all(c.reason == Reason.OUT_OF_REACH for c in res.candidates)
-    assert (res.status == Reason.OUT_OF_REACH).all()
+    # no frame may fail (critical_tolerance of 4 frames): after the first, the frames are not solved
+    assert res.status[0] == Reason.OUT_OF_REACH and (res.status[1:] == Reason.NO_VALID_BASE).all()
     assert "out of reach" in res.detail
 
 
@@ -196,7 +197,9 @@ def test_warm_frames_by_newton_give_ipopts_search(assets, monkeypatch):
     accepted = sum(taken)
     monkeypatch.setattr(am, "NEWTON_MAX_STEP", -1.0)  # no Newton solution is ever taken
     slow = search_virtual_base(targets, valid, "xarm_ability", CFG, up=UP, init_base=Tb)
-    assert accepted >= 0.8 * 27 * 7 and fast.ranking and fast.chosen == slow.chosen and fast.ranking == slow.ranking
+    warm = int((fast.frame_status != Reason.NO_VALID_BASE).sum()) - len(fast.candidates)  # solved frames after the first
+    assert warm >= 27 and accepted >= 0.8 * warm
+    assert fast.ranking and fast.chosen == slow.chosen and fast.ranking == slow.ranking
     assert [c.reason for c in fast.candidates] == [c.reason for c in slow.candidates]
     np.testing.assert_allclose(np.stack(fast.arm_tracks), np.stack(slow.arm_tracks), atol=1e-4)
 

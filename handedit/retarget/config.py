@@ -16,7 +16,8 @@ class VirtualBaseConfig(BaseModel):
     # 5: candidates discarded for body collisions alone are a last resort (their frames fail, not the sequence);
     # 6: a candidate's first frame tries Newton from its neighbour's solution before any cold IPOPT;
     # 7: the hand's own wrist joints (Shadow, ORCA) are arm joints of the IK (``arm.ArmModel``); the dual-arm
-    # check tries the best dual_arm_candidates of each side, not 3
+    # check tries the best dual_arm_candidates of each side, not 3; a candidate past its critical tolerance is not
+    # solved further (its remaining frames read NO_VALID_BASE)
 
     init_back: float = Field(0.55, description="base distance behind the wrist centre, in L_r")
     init_up: float = Field(0.10, description="base height above the wrist centre, in L_r")

@@ -18,10 +18,11 @@ whole sequence:
   the head camera down along world up: ``body_distance``); a candidate is discarded when
   more than ``critical_tolerance`` of its critical frames fail (the paper does not say which
   frames are critical; the caller passes the frames where the hand is in view: see
-  ``hand_arm.critical_frames``), when it keeps less than ``min_reachability`` of the
-  sequence or when its kept frames jump; failed frames of a kept candidate are rejected
-  alone; a body collision never fails a critical frame, and a candidate discarded for body
-  collisions alone is a base of last resort (``_last_resort``) when no other survives;
+  ``hand_arm.critical_frames``; the frames after the one that decides it are not solved),
+  when it keeps less than ``min_reachability`` of the sequence or when its kept frames jump;
+  failed frames of a kept candidate are rejected alone; a body collision never fails a
+  critical frame, and a candidate discarded for body collisions alone is a base of last
+  resort (``_last_resort``) when no other survives;
 * when none of the 27 survives, a second grid is centred where the arm's first joint sits
   ``refine_reach_frac`` L_r from the wrist targets (``reach_centre``: a long arm beside the
   human shoulder folds onto targets 0.3 L_r away and reaches no wrist orientation); the
@@ -299,6 +300,7 @@ class _Track:
     chains: np.ndarray  # (T,3,P) in the camera frame
     settled: float | None = None  # every seed was tried on the first frame and none kept the full body clearance:
     # the clearance (m) of the branch it settled for (a neighbouring candidate may take the same branch as it is)
+    stopped: int | None = None  # the frame after which it was not solved: by then it had failed too many critical frames
 
 
 def body_distance(points: np.ndarray, frame_from_camera: np.ndarray, up: np.ndarray, head_back: float,
@@ -321,10 +323,15 @@ def body_distance(points: np.ndarray, frame_from_camera: np.ndarray, up: np.ndar
 
 def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, valid: np.ndarray,
               plane: np.ndarray | None, cfg: VirtualBaseConfig, hint: np.ndarray | None = None,
-              cameras: np.ndarray | None = None, up: np.ndarray | None = None, hint_settled: float | None = None) -> _Track:
+              cameras: np.ndarray | None = None, up: np.ndarray | None = None, hint_settled: float | None = None,
+              critical: np.ndarray | None = None) -> _Track:
     """IK along the sequence for one base. ``hint``: first-frame arm joints of a neighbouring
     candidate (tried first: neighbours differ by a few cm, so it usually converges at once);
-    ``hint_settled``: that neighbour's ``_Track.settled``."""
+    ``hint_settled``: that neighbour's ``_Track.settled``; ``critical``: once more of these
+    frames fail (other than for the operator's body) than ``critical_tolerance`` allows, the
+    candidate is discarded whatever the rest does, so the rest is not solved (``NO_VALID_BASE``):
+    a KUKA arm's 18 unreachable candidates on EgoDex add_remove_lid failed their first two
+    frames, and their 92 others took 90 % of the search, each failed frame a cold IPOPT restart."""
     T = len(targets)
     base_from_cam = np.linalg.inv(camera_from_base)
     shoulder_cam = camera_from_base[:3, :3] @ arm.shoulder + camera_from_base[:3, 3]
@@ -338,9 +345,14 @@ def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, 
         pts = camera_from_base[:3, :3] @ arm.chain(q)[:, body_pts] + camera_from_base[:3, 3:4]
         return body_distance(pts.T, cameras[i], up, cfg.head_back_m, cfg.torso_length_m, cfg.torso_back_m)
 
-    prev, settled = None, None
+    prev, settled, stopped = None, None, None
+    crit = np.zeros(T, bool) if critical is None else np.asarray(critical, bool) & valid
+    allowed, n_bad = int(np.floor(cfg.critical_tolerance * crit.sum())), 0
     rng = np.random.default_rng(0)
     for i in np.flatnonzero(valid):
+        if stopped is not None:
+            status[i] = Reason.NO_VALID_BASE
+            continue
         target = base_from_cam @ targets[i]
         if prev is None:
             seeds = ([] if hint is None else [hint]) + [(arm.lo_s + arm.hi_s) / 2, np.zeros(arm.n)]
@@ -375,7 +387,10 @@ def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, 
             status[i] = Reason.BODY_COLLISION
         else:
             status[i] = Reason.OK
-    return _Track(arm_q, status, pos_err, chains, settled)
+        n_bad += bool(crit[i] and status[i] not in (Reason.OK, Reason.BODY_COLLISION))
+        if n_bad > allowed:
+            stopped = int(i)
+    return _Track(arm_q, status, pos_err, chains, settled, stopped)
 
 
 def _first_frame(arm: ArmModel, target: np.ndarray, seeds: list, cfg: VirtualBaseConfig, clearance=None,
@@ -419,6 +434,7 @@ def _score(idx: int, grid_entry, track: _Track, arm: ArmModel, valid: np.ndarray
     lat, fwd, yaw, Tb = grid_entry[:4]
     st = track.status
     ok = st == Reason.OK
+    solved = st != Reason.NO_VALID_BASE  # frames after ``track.stopped`` were not
     crit = critical & valid
     crit_succ = float(ok[crit].mean()) if crit.any() else 1.0
     reach = float(ok[valid].mean()) if valid.any() else 0.0
@@ -426,19 +442,20 @@ def _score(idx: int, grid_entry, track: _Track, arm: ArmModel, valid: np.ndarray
     q = track.arm_q[ok]
     rng_ = arm.hi_s - arm.lo_s
     margin = float(np.min(np.minimum(q - arm.lo_s, arm.hi_s - q) / rng_)) if len(q) else 0.0
-    solved = np.flatnonzero(ok)  # steps between frames that are kept (a rejected frame's pose is never shown)
-    steps = np.abs(np.diff(track.arm_q[solved], axis=0)).max(axis=1) if len(solved) > 1 else np.zeros(0)
+    kept = np.flatnonzero(ok)  # steps between frames that are kept (a rejected frame's pose is never shown)
+    steps = np.abs(np.diff(track.arm_q[kept], axis=0)).max(axis=1) if len(kept) > 1 else np.zeros(0)
     cont = float(steps.max()) if steps.size else 0.0
     reason, detail, last_resort = Reason.OK, "", False
     # a body collision is the operator's keep-out, not the robot's limit: that frame alone is rejected
     body = st == Reason.BODY_COLLISION
-    bad_crit = crit & ~ok & ~body
+    bad_crit = crit & ~ok & ~body & solved
     allowed = int(np.floor(cfg.critical_tolerance * crit.sum()))
     if bad_crit.sum() > allowed:
         r = Reason(int(np.bincount(st[bad_crit]).argmax()))  # the commonest frame-level cause names the rejection
         reason = r
-        detail = (f"{int(bad_crit.sum())} of {int(crit.sum())} critical frame(s) fail ({_name(r)}; {allowed} allowed), "
-                  f"first {int(np.flatnonzero(bad_crit)[0])}")
+        seen = "" if track.stopped is None else f" by frame {track.stopped}, where the search stopped"
+        detail = (f"{int(bad_crit.sum())} of {int(crit.sum())} critical frame(s) fail{seen} ({_name(r)}; {allowed} "
+                  f"allowed), first {int(np.flatnonzero(bad_crit)[0])}")
     elif reach < cfg.min_reachability:
         r = Reason(int(np.bincount(st[valid & ~ok]).argmax()))
         reason = r
@@ -548,7 +565,7 @@ def search_virtual_base(
         for g in grid:
             hint = tracks[-1].arm_q[first] if tracks and tracks[-1].status[first] != Reason.OUT_OF_REACH else None
             tr = _evaluate(arm, g[3], targets, valid, support_plane, cfg, hint, cameras, up,
-                           tracks[-1].settled if hint is not None else None)
+                           tracks[-1].settled if hint is not None else None, critical)
             sc = _score(len(tracks), g, tr, arm, valid, critical, cfg)
             sc.stage = stage
             if sc.reason == Reason.OK and view is not None and cameras is not None:
