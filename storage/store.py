@@ -258,6 +258,14 @@ def create_previews(root: zarr.Group, unit: Unit, height: int, width: int, side:
     group.create_array("frames", shape=(p,), dtype="int32", fill_value=-1, overwrite=True, dimension_names=("preview_frame",))
 
 
+def drop_previews(root: zarr.Group, unit: Unit, side: str) -> None:
+    """The unit's owner, where previews are not asked for: no group, so none of an earlier run's
+    previews is shown as this run's."""
+    path = preview_path(unit, side)
+    if path in root:
+        del root[path]
+
+
 def write_previews(root: zarr.Group, unit: Unit, candidates: list[int], frames: list[int],
                    ego: np.ndarray, third: np.ndarray, side: str) -> dict[str, str]:
     """Task: one hand's top candidates' egocentric and third-person renders (the unit's one writer)."""

@@ -41,7 +41,7 @@ from handedit.storage.integrity import missing_objects, stored_objects
 from handedit.storage.handoff import Handoff, handing_over
 from handedit.storage.location import location_of
 from handedit.storage.provenance import ChunkRecord, changed_inputs, drop_records, is_current, provenance_key
-from handedit.storage.store import CorruptChunk, create_previews
+from handedit.storage.store import CorruptChunk, create_previews, drop_previews
 from handedit.tasks import STAGES
 from handedit.storage.store import StoreFull, store_full
 from handedit.tasks.common import RETRIES, RETRY_DELAYS, ChunkJob, execute, failure_record, is_transient, open_root
@@ -362,10 +362,15 @@ def create_embodiment_units(root, config, plan, emb: dict) -> None:
     for stage in EMBODIMENT_STAGES:
         extra = {**hands, "stage": stage, **({"joint_names": emb["joint_names"]} if stage == "retarget" else {})}
         create_unit(root, Unit(stage, plan.clip, embodiment=emb["id"]), plan.n_frames, sizes, f, attrs=extra)
+    vb = config.stage_config("retarget").virtual_base
     if emb["scope"] == "hand_arm":
-        n = min(config.stage_config("retarget").virtual_base.preview_frames(), plan.n_frames)
+        n = min(vb.preview_frames(), plan.n_frames)
         for side in plan.hands:
-            create_previews(root, Unit("retarget", plan.clip, embodiment=emb["id"]), plan.height, plan.width, side, n)
+            unit = Unit("retarget", plan.clip, embodiment=emb["id"])
+            if vb.wants_previews():
+                create_previews(root, unit, plan.height, plan.width, side, n)
+            else:
+                drop_previews(root, unit, side)
 
 
 # ----------------------------------------------------------------------------- tasks

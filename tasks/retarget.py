@@ -90,7 +90,8 @@ def body(inp: Inputs, job: ChunkJob) -> StageOutput:
 def _hand_arm_body(inp: Inputs, job: ChunkJob) -> StageOutput:
     """Hand-arm: one node covers the whole clip (the virtual base is fixed per sequence);
     the sequence-level record (all candidate scores per side, the choice and its policy,
-    the dual-arm pair) goes to provenance, the top candidates' previews to the store."""
+    the dual-arm pair) goes to provenance, the top candidates' previews (where asked for:
+    ``VirtualBaseConfig.previews``) to the store."""
     from handedit.retarget.preview import top_previews
 
     plan = job.plan
@@ -109,7 +110,7 @@ def _hand_arm_body(inp: Inputs, job: ChunkJob) -> StageOutput:
     previews = {}
     for k, side in enumerate(sides):
         arm_res = res.arm_results.get(k)
-        if arm_res is None:
+        if arm_res is None or not config.virtual_base.wants_previews():
             continue
         cands, frames, ego, third = top_previews(arm_res, preview_intrinsics(intr, side),
                                                  world_from_camera=None if wfc is None else _side_world(wfc, side),

@@ -13,6 +13,7 @@ from handedit.embodiments.kinematics import get_kinematics
 from handedit.embodiments.roster import get_embodiment, resolve_urdf
 from handedit.reasons import Reason
 from handedit.retarget.arm import arm_model
+from handedit.retarget.config import RetargetConfig, VirtualBaseConfig
 from handedit.sources.synthetic import make_clip_specs
 from handedit.storage import Unit, open_store, read_ledger, read_records
 
@@ -45,7 +46,8 @@ def run(tmp_path_factory, prefect_api, dask_cluster, robots_dir):
         out = tmp_path_factory.mktemp("handarm") / "handedit.zarr"
         specs = make_clip_specs(1, seed=3, n_frames=T, width=W, height=H)
         config = CurateConfig(out=out, clips=specs, embodiments=[EMB], frames_per_chunk=F,
-                              cluster=ClusterConfig(address=dask_cluster.scheduler_address))
+                              cluster=ClusterConfig(address=dask_cluster.scheduler_address),
+                              retarget=RetargetConfig(virtual_base=VirtualBaseConfig(previews=True)))
         summary = run_curate(config)
         yield config, summary, specs[0].clip_id
     finally:
@@ -180,7 +182,6 @@ def test_manual_review_stores_a_replay_of_each_top_candidate(run, tmp_path, caps
     short replay (``replay_frames`` frames over the sequence), and ``handedit review --previews``
     writes it as a video: egocentric over the source beside the third-person view."""
     from handedit.flows.cli import main
-    from handedit.retarget.config import RetargetConfig, VirtualBaseConfig
     from handedit.storage.store import read_previews
 
     config, _, clip = run
@@ -195,3 +196,21 @@ def test_manual_review_stores_a_replay_of_each_top_candidate(run, tmp_path, caps
     videos = sorted((tmp_path / "pv").glob("*.mp4"))
     assert len(videos) == len(pv["candidates"]) and all(_video(v) == (6, H, 2 * W) for v in videos)
     assert len(list((tmp_path / "pv").glob("*.png"))) == len(pv["candidates"]) * 3 * 2  # stills: first, middle, last
+
+
+def test_auto_runs_render_previews_only_when_asked(run, capsys):
+    """Under ``review: auto_top1`` nobody chooses from the previews: by default they are not
+    rendered, an earlier run's are dropped, and ``handedit review --previews`` says how to get them."""
+    from handedit.flows.cli import main
+    from handedit.storage.layout import preview_path
+
+    assert not VirtualBaseConfig().wants_previews() and VirtualBaseConfig(review="manual").wants_previews()
+    config, _, clip = run
+    plain = config.model_copy(update={"retarget": RetargetConfig()})
+    assert run_curate(plain)["stages"]["retarget"]["ran"] == 1
+    root = open_store(config.out)
+    unit = Unit("retarget", clip, embodiment=EMB)
+    assert preview_path(unit, "right") not in root
+    assert read_records(root, unit)[0].extra["previews"] == {}
+    assert main(["review", str(config.out), "--clip", clip, "--embodiment", EMB, "--previews", "unused"]) == 2
+    assert "previews: true" in capsys.readouterr().err

@@ -125,10 +125,17 @@ def _write_previews(root, args, found) -> int:
 
     from handedit.retarget.preview import preview_frames, replay, write_video
     from handedit.storage import Unit
+    from handedit.storage.layout import preview_path
     from handedit.storage.store import read_array, read_previews
 
     (c, e, sd), vb = next(iter(found.items()))
-    pv = read_previews(root, Unit("retarget", c, embodiment=e), sd)
+    unit = Unit("retarget", c, embodiment=e)
+    if preview_path(unit, sd) not in root:
+        print(f"error: this run stored no previews for {c}/{e}/{sd}: under `review: auto_top1` they are rendered only "
+              "when asked for. Set `retarget: {virtual_base: {previews: true}}` in the run config (or `review: manual`) "
+              "and re-run `handedit curate` (its retarget stage runs again).", file=sys.stderr)
+        return 2
+    pv = read_previews(root, unit, sd)
     if len(pv["candidates"]) == 0:
         print(f"error: no previews stored for {c}/{e}/{sd} (no valid candidate, or not curated yet)", file=sys.stderr)
         return 2

@@ -17,7 +17,7 @@ class VirtualBaseConfig(BaseModel):
     # 6: a candidate's first frame tries Newton from its neighbour's solution before any cold IPOPT;
     # 7: the hand's own wrist joints (Shadow, ORCA) are arm joints of the IK (``arm.ArmModel``); the dual-arm
     # check tries the best dual_arm_candidates of each side, not 3; a candidate past its critical tolerance is not
-    # solved further (its remaining frames read NO_VALID_BASE)
+    # solved further (its remaining frames read NO_VALID_BASE); previews are rendered when asked for (``previews``)
 
     init_back: float = Field(0.55, description="base distance behind the wrist centre, in L_r")
     init_up: float = Field(0.10, description="base height above the wrist centre, in L_r")
@@ -61,6 +61,12 @@ class VirtualBaseConfig(BaseModel):
                                      "bases (a lower-ranked one is taken only where the better ones collide)")
     replay_frames: int = Field(24, ge=3, description="review: manual: frames of each top candidate's replay preview, evenly "
                                "spaced over the sequence (auto_top1 keeps stills of the first, middle and last frame)")
+    previews: bool | None = Field(None, description="store the top candidates' previews for `handedit review --previews` "
+                                  "(None: under review: manual only, where a person chooses from them; rendering them "
+                                  "was a third of a hand-arm's retarget time on EgoDex's 32-frame windows)")
+
+    def wants_previews(self) -> bool:
+        return self.review == "manual" if self.previews is None else self.previews
 
     def preview_frames(self) -> int:
         """Frames stored per top candidate for review: a short replay where a person will choose."""

@@ -347,7 +347,7 @@ def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, 
 
     prev, settled, stopped = None, None, None
     crit = np.zeros(T, bool) if critical is None else np.asarray(critical, bool) & valid
-    allowed, n_bad = int(np.floor(cfg.critical_tolerance * crit.sum())), 0
+    allowed, n_bad = _allowed_failures(crit, cfg), 0
     rng = np.random.default_rng(0)
     for i in np.flatnonzero(valid):
         if stopped is not None:
@@ -391,6 +391,11 @@ def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, 
         if n_bad > allowed:
             stopped = int(i)
     return _Track(arm_q, status, pos_err, chains, settled, stopped)
+
+
+def _allowed_failures(critical: np.ndarray, cfg: VirtualBaseConfig) -> int:
+    """How many of these critical frames a candidate may fail and still be kept."""
+    return int(np.floor(cfg.critical_tolerance * np.count_nonzero(critical)))
 
 
 def _first_frame(arm: ArmModel, target: np.ndarray, seeds: list, cfg: VirtualBaseConfig, clearance=None,
@@ -449,7 +454,7 @@ def _score(idx: int, grid_entry, track: _Track, arm: ArmModel, valid: np.ndarray
     # a body collision is the operator's keep-out, not the robot's limit: that frame alone is rejected
     body = st == Reason.BODY_COLLISION
     bad_crit = crit & ~ok & ~body & solved
-    allowed = int(np.floor(cfg.critical_tolerance * crit.sum()))
+    allowed = _allowed_failures(crit, cfg)
     if bad_crit.sum() > allowed:
         r = Reason(int(np.bincount(st[bad_crit]).argmax()))  # the commonest frame-level cause names the rejection
         reason = r
