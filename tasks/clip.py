@@ -362,11 +362,11 @@ def create_embodiment_units(root, config, plan, emb: dict) -> None:
     for stage in EMBODIMENT_STAGES:
         extra = {**hands, "stage": stage, **({"joint_names": emb["joint_names"]} if stage == "retarget" else {})}
         create_unit(root, Unit(stage, plan.clip, embodiment=emb["id"]), plan.n_frames, sizes, f, attrs=extra)
-    vb = config.stage_config("retarget").virtual_base
     if emb["scope"] == "hand_arm":
+        vb = config.stage_config("retarget").virtual_base
         n = min(vb.preview_frames(), plan.n_frames)
+        unit = Unit("retarget", plan.clip, embodiment=emb["id"])
         for side in plan.hands:
-            unit = Unit("retarget", plan.clip, embodiment=emb["id"])
             if vb.wants_previews():
                 create_previews(root, unit, plan.height, plan.width, side, n)
             else:

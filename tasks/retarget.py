@@ -108,9 +108,9 @@ def _hand_arm_body(inp: Inputs, job: ChunkJob) -> StageOutput:
                                   arrays.get("reg_arm_keypoints"), arrays.get("arm_valid"), choices,
                                   object_mesh=_object_mesh(job), object_pose=arrays.get("object_pose"), intr=intr)
     previews = {}
-    for k, side in enumerate(sides):
+    for k, side in enumerate(sides if config.virtual_base.wants_previews() else ()):
         arm_res = res.arm_results.get(k)
-        if arm_res is None or not config.virtual_base.wants_previews():
+        if arm_res is None:
             continue
         cands, frames, ego, third = top_previews(arm_res, preview_intrinsics(intr, side),
                                                  world_from_camera=None if wfc is None else _side_world(wfc, side),

@@ -193,19 +193,18 @@ def _dual_arm(out: SidesResult, sides, embodiment_id: str, cfg: RetargetConfig, 
     pinned = {k: res[k].virtual_base.selected_by.startswith("review:") for k in (0, 1)}
     n_opts = cfg.virtual_base.dual_arm_candidates
     opts = {k: ([vbs[k].chosen] if pinned[k] else vbs[k].ranking[:n_opts]) for k in (0, 1)}
-    rank = {p: (opts[0].index(p[0]) + opts[1].index(p[1]), opts[0].index(p[0])) for p in
-            ((i, j) for i in opts[0] for j in opts[1])}
-
+    rank = {(i, j): (opts[0].index(i) + opts[1].index(j), opts[0].index(i)) for i in opts[0] for j in opts[1]}
+    valid = {p: both_ok(p) for p in rank}
     first = min(rank, key=rank.get)
     best, hit = first, collisions(*first)
     if hit.any():  # the pair that keeps the most frames clear of each other (ties: the better ranked)
-        kept = int((both_ok(first) & ~hit).sum())
-        for p in sorted(rank, key=lambda p: (-int(both_ok(p).sum()), rank[p])):
-            if int(both_ok(p).sum()) <= kept:
+        kept = int((valid[first] & ~hit).sum())
+        for p in sorted(rank, key=lambda p: (-int(valid[p].sum()), rank[p])):
+            if int(valid[p].sum()) <= kept:
                 break  # none further on can keep more
             c = collisions(*p)
-            if int((both_ok(p) & ~c).sum()) > kept:
-                best, hit, kept = p, c, int((both_ok(p) & ~c).sum())
+            if int((valid[p] & ~c).sum()) > kept:
+                best, hit, kept = p, c, int((valid[p] & ~c).sum())
     i, j = best
     for k, cand in ((0, i), (1, j)):
         if cand != vbs[k].chosen:  # a lower-ranked base avoids the other arm: re-solve that side with it

@@ -350,9 +350,6 @@ def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, 
     allowed, n_bad = _allowed_failures(crit, cfg), 0
     rng = np.random.default_rng(0)
     for i in np.flatnonzero(valid):
-        if stopped is not None:
-            status[i] = Reason.NO_VALID_BASE
-            continue
         target = base_from_cam @ targets[i]
         if prev is None:
             seeds = ([] if hint is None else [hint]) + [(arm.lo_s + arm.hi_s) / 2, np.zeros(arm.n)]
@@ -390,6 +387,8 @@ def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, 
         n_bad += bool(crit[i] and status[i] not in (Reason.OK, Reason.BODY_COLLISION))
         if n_bad > allowed:
             stopped = int(i)
+            status[i + 1:][np.asarray(valid, bool)[i + 1:]] = Reason.NO_VALID_BASE
+            break
     return _Track(arm_q, status, pos_err, chains, settled, stopped)
 
 
