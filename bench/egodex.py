@@ -19,7 +19,8 @@ pixel-weighted over the frames the hand is in view, also at 3 and 2 cm (the fore
 a slim forearm leaves table inside the 4 cm capsule), beside the mask's half-width across the
 forearm (``half_widths``: a bare forearm of 3 cm covers about 3/4 of the 4 cm capsule); the kept hand-arm frames with more than
 25 % of a robot outside the human arm's corridor (the hand-arm mask plus the capsule, grown
-by 5 % of the image width); and the RESIDUE rejections per clip: restoration's (frames) and
+by 5 % of the image width); composite's two hand-arm screens (frame-sides rejected for OFF_ARM and
+for HAND_HIDDEN, a robot arm over where the human hand was seen); and the RESIDUE rejections per clip: restoration's (frames) and
 composite's, which judges residue where no robot covers it (frame-sides per embodiment).
 Restoration's share of each hole taken from real pixels (``filled_from_video``, weighted by
 the hole's area), per clip and scope, over all frames and the first 24 (where the shared
@@ -222,7 +223,7 @@ def arm_report(root) -> dict:
     from handedit.storage.layout import clip_path
     from handedit.vision.arm import coverage, forearm_capsule, limbs, off_arm_shares
 
-    out = {"coverage": {}, "off_arm": {}, "residue": {}, "residue_composite": {}, "from_video": {}}
+    out = {"coverage": {}, "off_arm": {}, "screens": {}, "residue": {}, "residue_composite": {}, "from_video": {}}
     for c in sorted(root["clips"].group_keys()):
         for scope in ("hand", "hand_arm"):  # how much of each hole real pixels restored (the rest is inpainted)
             rb = Unit("restore_background", c, scope=scope)
@@ -260,6 +261,8 @@ def arm_report(root) -> dict:
                 out["residue_composite"][(c, emb)] = int((root[comp.path]["hand_status"][:] == Reason.RESIDUE).sum())
             if get_embodiment(emb).track != "hand_arm":
                 continue
+            own = root[comp.path]["hand_status"][:]
+            out["screens"][(c, emb)] = (int((own == Reason.OFF_ARM).sum()), int((own == Reason.HAND_HIDDEN).sum()))
             qc = root[Unit("qc", c, embodiment=emb).path]
             kept = (qc["status"][:] == Reason.OK)[:, None] & (qc["hand_status"][:] == Reason.OK)
             shares = off_arm_shares(root[comp.path]["robot_mask"][:], handarm, L, intr, kept)
@@ -277,6 +280,9 @@ def print_arm_report(rep: dict) -> None:
     print("\nkept hand-arm frame-sides with > 25 % of the robot outside the arm corridor:")
     for (c, e), (bad, n) in rep["off_arm"].items():
         print(f"  {c:<34} {e:<14} {bad:>4} of {n}")
+    print("\ncomposite's hand-arm screens, rejected frame-sides per clip x embodiment: OFF_ARM  HAND_HIDDEN")
+    for (c, e), (off, hidden) in rep["screens"].items():
+        print(f"  {c:<34} {e:<14} {off:>4} {hidden:>4}")
     print("\nrestored from real pixels (filled_from_video, weighted by hole area), per clip and scope: all frames / the first 24")
     for (c, scope), (share, first) in rep["from_video"].items():
         print(f"  {c:<34} {scope:<8} {share:6.3f} {first:6.3f}")

@@ -56,6 +56,7 @@ class Reason(IntEnum):
     EMPTY_RENDER = 601  # the robot is not visible in the image
     HUMAN_VISIBLE = 602  # human-hand pixels remain visible beside the robot in the composite
     OFF_ARM = 603  # hand-arm: too much of the robot lies outside the human arm's corridor (base plausibility)
+    HAND_HIDDEN = 604  # hand-arm: a robot arm link covers where the human hand was seen, hiding the robot's hand
     # 9xx: infrastructure
     STAGE_ERROR = 901  # the stage raised after its retries; detail holds the error
     ASSETS_MISSING = 902  # embodiment assets could not be resolved

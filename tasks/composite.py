@@ -7,7 +7,8 @@ A source without either (EgoDex, a video): what hid the human fingers, from the 
 keypoints and the hand masks (``handedit.vision.occluder``), stays in front of the robot.
 Hands whose robot is not drawn get their source pixels back; replaced hands are checked
 for visible human residue (beside the robot: HUMAN_VISIBLE; in the restored background where
-no robot covers it: RESIDUE), and hand-arm robots for lying where the human arm was (OFF_ARM).
+no robot covers it: RESIDUE), and hand-arm robots for lying where the human arm was (OFF_ARM) and for an arm link hiding
+the robot's hand where the human hand was seen (HAND_HIDDEN).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from handedit.storage import Unit, writable
 from handedit.storage.layout import ArraySpec, HAND_MASK, HAND_MASK_DIMS, HAND_STATUS, RGB, RGB_DIMS, SCOPE_MASK, STATUS
 from handedit.tasks.common import ChunkJob, StageOutput
 from handedit.tasks.stage import At, Inputs, Stage
-from handedit.vision.arm import limbs, off_arm_shares, off_arm_status
+from handedit.vision.arm import hand_hidden_shares, hand_hidden_status, limbs, off_arm_shares, off_arm_status
 from handedit.vision.composite import CompositeConfig, composite as composite_frames, robot_windows
 from handedit.vision.object_depth import object_occluder
 from handedit.vision.occluder import hidden_fingers
@@ -36,12 +37,19 @@ def _arrays(plan, track: str) -> tuple[list[str], list[str]]:
     return src, ["keypoints", "keypoints_valid", *(["arm_keypoints"] if arm else [])]
 
 
+def _parts(track: str) -> tuple[list[str], list[str]]:
+    """What it reads of render and of segment: a hand-arm's arm pixels over the hands (HAND_HIDDEN)."""
+    arm = track == "hand_arm"
+    return [*RENDERED, *(["robot_arm"] if arm else [])], [SCOPE_MASK[track], "hand_status", *(["hand_mask"] if arm else [])]
+
+
 def reads(at: At) -> list:
     clip, emb, track = at.plan.clip, at.unit.embodiment, at.track
     src, reg = _arrays(at.plan, track)
+    ren, seg = _parts(track)
     return [*at.each(Unit("restore_background", clip, scope=track), RESTORED),
-            *at.each(Unit("render", clip, embodiment=emb), RENDERED),
-            *at.each(Unit("segment", clip), (SCOPE_MASK[track], "hand_status")),
+            *at.each(Unit("render", clip, embodiment=emb), ren),
+            *at.each(Unit("segment", clip), seg),
             *at.each(Unit("ingest", clip), src), *at.each(Unit("registration", clip), reg)]
 
 
@@ -49,8 +57,9 @@ def body(inp: Inputs, job: ChunkJob) -> StageOutput:
     plan, clip, emb, scope = job.plan, job.unit.clip, job.unit.embodiment, job.track
     src_names, reg_names = _arrays(plan, scope)
     bg = inp.read(Unit("restore_background", clip, scope=scope), RESTORED)
-    ren = inp.read(Unit("render", clip, embodiment=emb), ["rgba", "robot_side", "hand_status", "status"])
-    seg = inp.read(Unit("segment", clip), [SCOPE_MASK[scope], "hand_status"])
+    ren_names, seg_names = _parts(scope)
+    ren = inp.read(Unit("render", clip, embodiment=emb), [n for n in ren_names if n != "depth"])
+    seg = inp.read(Unit("segment", clip), seg_names)
     reg = inp.read(Unit("registration", clip), reg_names)
     src = inp.read(Unit("ingest", clip), src_names)
     intr = Intrinsics(**plan.intrinsics)
@@ -79,6 +88,10 @@ def body(inp: Inputs, job: ChunkJob) -> StageOutput:
         off = off_arm_shares(result.robot_mask, seg[SCOPE_MASK[scope]], limbs_3d, intr, checked, cfg.arm_corridor_frac)
         own = off_arm_status(own, checked, off, cfg.max_off_arm)
         extra["off_arm_max"] = _side_max(off)
+        checked = replace & (own == Reason.OK)  # the robot's hand is seen where the human hand was
+        hidden = hand_hidden_shares(ren["robot_arm"] & result.union, seg["hand_mask"], checked)
+        own = hand_hidden_status(own, checked, hidden, cfg.max_hand_hidden)
+        extra["hand_hidden_max"] = _side_max(hidden)
     upstream = ren["hand_status"]
     hand_status = np.where(replace, own,
                            np.where(upstream == Reason.ABSENT, Reason.ABSENT, Reason.UPSTREAM)).astype(np.int16)

@@ -27,7 +27,8 @@ def body(inp: Inputs, job: ChunkJob) -> StageOutput:
     ready = gate(ret["status"])[:, None] & (ret["hand_status"] == Reason.OK)
     result = render_stage(emb, ret["qpos"], ret["root_pose"], ready, job.plan.hands, intr, RenderConfig(**job.params))
     hand_status = np.where(ret["hand_status"] == Reason.ABSENT, Reason.ABSENT, result.hand_status).astype(np.int16)
-    return StageOutput({"rgba": result.rgba, "depth": result.depth, "robot_side": result.robot_side},
+    return StageOutput({"rgba": result.rgba, "depth": result.depth, "robot_side": result.robot_side,
+                        "robot_arm": result.robot_arm},
                        combine(per_frame(hand_status), gate(ret["status"])), method=result.method, hand_status=hand_status)
 
 
@@ -35,6 +36,7 @@ WRITES = (
     ArraySpec("rgba", ("H", "W", 4), "uint8", ("y", "x", "rgba"), image=True),
     ArraySpec("depth", MASK, "float32", MASK_DIMS, image=True),
     ArraySpec("robot_side", MASK, "uint8", MASK_DIMS, image=True),  # 0: no robot, k+1: hand k's robot
+    ArraySpec("robot_arm", MASK, "bool", MASK_DIMS, image=True, fill=False),  # the surface seen is an arm link
     HAND_STATUS,
     STATUS,
 )

@@ -1,5 +1,5 @@
 """The human arm from 3-D joints (handedit.vision.arm), the sleeve in the hand-arm mask on
-real EgoDex frames, and the off-arm screen (Reason.OFF_ARM)."""
+real EgoDex frames, the off-arm screen (Reason.OFF_ARM) and the hidden-hand screen (Reason.HAND_HIDDEN)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from handedit.camera import Intrinsics, project
-from handedit.vision.arm import capsule, clip_near, corridor, coverage, forearm_capsule, limbs, off_arm_shares, outside_share
+from handedit.reasons import Reason
+from handedit.vision.arm import (MAX_HAND_HIDDEN, capsule, clip_near, corridor, coverage, forearm_capsule, hand_hidden_shares,
+                                  hand_hidden_status, limbs, off_arm_shares, outside_share)
 
 INTR = Intrinsics(300.0, 300.0, 159.5, 119.5, 320, 240)
 
@@ -75,6 +77,29 @@ def test_off_arm_shares_flags_a_robot_where_no_arm_was():
     widened = off_arm_shares(robot, human, line, INTR, checked)
     assert widened[1, 0] < shares[1, 0]
     assert np.isnan(off_arm_shares(robot, human, None, None, np.zeros((n, S), bool))).all()
+
+
+def test_hand_hidden_flags_an_arm_over_where_the_hand_was():
+    """Frame 0: the robot's forearm reaches the hand's edge (the wrist), its hand covers the rest;
+    frame 1: a wrist module near the lens lies over most of the hand; frame 2: the other robot's
+    arm crosses it (any robot's arm counts); side 1 is not checked."""
+    n, S, H, W = 3, 2, 120, 160
+    hand = np.zeros((n, S, H, W), bool)
+    hand[:, 0, 40:80, 60:100] = True
+    hand[:, 1, 40:80, 110:150] = True
+    arm = np.zeros((n, H, W), bool)
+    arm[0, 76:120, 60:100] = True  # 4 of the hand's 40 rows
+    arm[1, 30:120, 50:110] = True
+    arm[2, 50:70, 0:160] = True
+    checked = np.array([[True, False]] * n)
+    shares = hand_hidden_shares(arm, hand, checked, step=1)
+    assert shares[0, 0] == pytest.approx(0.1)
+    assert shares[1, 0] == pytest.approx(1.0) and shares[2, 0] == pytest.approx(0.5)
+    assert np.isnan(shares[:, 1]).all()
+    own = np.full((n, S), Reason.OK, np.int16)
+    status = hand_hidden_status(own, checked, shares, MAX_HAND_HIDDEN)
+    assert status[:, 0].tolist() == [Reason.OK, Reason.HAND_HIDDEN, Reason.HAND_HIDDEN]
+    assert (status[:, 1] == Reason.OK).all()
 
 
 def test_sleeve_in_the_hand_arm_mask_on_real_egodex(egodex_dir):

@@ -330,6 +330,17 @@ def test_embodiment_render_contains_projected_fk_links(robots_dir, monkeypatch, 
     grown = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
     off = [l for l, (u, v) in zip(links, uv) if not (0 <= u < W and 0 <= v < H and grown[v, u])]
     assert not off, f"link origins off the silhouette: {off}"
+    # the arm's pixels are tagged (HAND_HIDDEN reads them), and every robot pixel stays opaque
+    assert set(np.unique(res.rgba[0, ..., 3]).tolist()) <= {0, 255}
+    if emb_id in HAND_ARMS:
+        from handedit.embodiments.compose import compose_embodiment
+
+        c = compose_embodiment(emb_id)
+        assert c.base_link in r.arm_links and c.ee_link in r.arm_links and c.hand_root not in r.arm_links
+        arm = res.arm[0]
+        assert not (arm & ~mask).any() and 0.1 * mask.sum() < arm.sum() < 0.95 * mask.sum()
+    else:
+        assert res.arm is None and not r.arm_links
 
 
 def test_jaka_joint_caps_are_blue_faces_of_its_grey_links(robots_dir, monkeypatch):

@@ -27,20 +27,22 @@ def get_renderer(
     height: int,
     materials_key: tuple | None = None,
     decimate: float | None = None,
+    hand_root: str | None = None,
 ) -> RobotRenderer:
     """Cached RobotRenderer. ``materials_key`` is a hashable materials mapping: a tuple of
-    (link-name regex, (r, g, b, a)) pairs, as ``RobotRenderer(materials=dict(materials_key))``."""
+    (link-name regex, (r, g, b, a)) pairs, as ``RobotRenderer(materials=dict(materials_key))``;
+    ``hand_root``: a hand-arm's hand root link (its arm's pixels are tagged, ``RenderResult.arm``)."""
     from handedit.digests import robot_digest
 
     urdf_path = Path(urdf_path).resolve()
     materials_key = tuple((str(k), tuple(float(c) for c in v)) for k, v in materials_key) if materials_key else None
     key = (os.getpid(), threading.get_ident(), str(urdf_path), robot_digest(urdf_path), int(width), int(height),
-           materials_key, decimate)
+           materials_key, decimate, hand_root)
     with _LOCK:
         renderer = _CACHE.get(key)
     if renderer is None:
         # Built outside the lock: other threads keep rendering while this one loads meshes.
-        renderer = RobotRenderer(urdf_path, width, height, dict(materials_key) if materials_key else None, decimate)
+        renderer = RobotRenderer(urdf_path, width, height, dict(materials_key) if materials_key else None, decimate, hand_root)
         with _LOCK:
             renderer = _CACHE.setdefault(key, renderer)
     return renderer
@@ -68,17 +70,20 @@ def embodiment_renderer(
     ``side="left"``: its mirror image, ``handedit.embodiments.mirror``).
 
     Colours: the roster's (``embodiments.render_materials``) unless ``materials`` (link regex ->
-    RGBA) overrides them; overrides are tried first, the roster's apply to the other links."""
+    RGBA) overrides them; overrides are tried first, the roster's apply to the other links.
+    A hand-arm's renderer tags its arm's pixels (``RenderResult.arm``)."""
     from handedit import embodiments
+    from handedit.embodiments.compose import compose_embodiment
     from handedit.embodiments.mirror import mirror_urdf
 
     emb = embodiments.get_embodiment(embodiment_id)
     urdf_path = embodiments.resolve_urdf(emb)
+    hand_root = compose_embodiment(embodiment_id).hand_root if emb.track == "hand_arm" else None
     if side == "left":
         urdf_path = mirror_urdf(urdf_path)
     merged = {**(materials or {}), **embodiments.render_materials(emb)}
     key = tuple((k, tuple(v)) for k, v in merged.items()) if merged else None
-    return get_renderer(Path(urdf_path), width, height, key, decimate)
+    return get_renderer(Path(urdf_path), width, height, key, decimate, hand_root)
 
 
 def render_embodiment(

@@ -38,6 +38,7 @@ class RenderResult:
     rgba: np.ndarray  # (n,H,W,4) uint8; alpha 255 on robot pixels, RGB black where alpha is 0
     depth: np.ndarray  # (n,H,W) float32 metres along the camera z axis; 0 where no robot
     boxes: np.ndarray | None = None  # (n,4) int (x, y, w, h): every robot pixel lies inside; None: anywhere
+    arm: np.ndarray | None = None  # (n,H,W) bool: robot pixels of an arm link (a hand-arm's arm); None: no arm
 
     def box(self, i: int) -> tuple[slice, slice]:
         """Frame i's box as (rows, columns) slices."""
@@ -65,6 +66,24 @@ def _light_pose_gl(direction_cv: np.ndarray) -> np.ndarray:
     return T
 
 
+ARM_ALPHA = 0.5  # material alpha of arm links: read back as 128, the part's tag (RobotRenderer)
+
+
+def arm_links(urdf, hand_root: str) -> frozenset[str]:
+    """The links outside ``hand_root``'s subtree (a hand-arm's arm, its base and flange)."""
+    children: dict[str, list[str]] = {}
+    for j in urdf.robot.joints:
+        children.setdefault(j.parent, []).append(j.child)
+    if hand_root not in {link.name for link in urdf.robot.links}:
+        raise ValueError(f"hand root link '{hand_root}' is not a link of {urdf.robot.name}")
+    hand, todo = set(), [hand_root]
+    while todo:
+        link = todo.pop()
+        hand.add(link)
+        todo.extend(children.get(link, ()))
+    return frozenset(link.name for link in urdf.robot.links) - hand
+
+
 def screen_box(points: np.ndarray, camera_from_link: np.ndarray, link: np.ndarray, intr: Intrinsics,
                margin: int = 2) -> tuple[int, int, int, int] | None:
     """(x, y, w, h) pixel box holding every pixel the points' hull can cover, clipped to the
@@ -88,6 +107,9 @@ class RobotRenderer:
     Links with no match keep their URDF/mesh colours; meshes with none render neutral grey.
     ``decimate``: keep about this fraction of the faces of each dense mesh (quadric decimation;
     small meshes, and meshes whose silhouette would change, stay in full: ``model.decimate_mesh``).
+    ``hand_root``: a hand-arm's hand root link; the links outside its subtree are the arm, and
+    ``render`` says which pixels show them (``RenderResult.arm``) at no extra pass: their
+    material's alpha is ``ARM_ALPHA``, which the shader writes out (meshes are drawn opaque).
     """
 
     def __init__(
@@ -97,6 +119,7 @@ class RobotRenderer:
         height: int,
         materials: dict[str, Rgba] | None = None,
         decimate: float | None = None,
+        hand_root: str | None = None,
     ) -> None:
         self.urdf_path = Path(urdf_path)
         self.width, self.height = int(width), int(height)
@@ -107,6 +130,7 @@ class RobotRenderer:
         self._polys = poly_mimics(self.urdf_path)
         self._base = self.urdf.base_link
         self._thread = threading.get_ident()
+        self.arm_links = arm_links(self.urdf, hand_root) if hand_root is not None else frozenset()
 
         # The camera sits at the scene origin; the scene frame *is* the GL camera frame, so lights
         # placed in it stay fixed relative to the camera and robot poses are CV_TO_GL @ root_pose.
@@ -119,7 +143,7 @@ class RobotRenderer:
                     normals=p.normals,
                     indices=p.faces,
                     material=pyrender.MetallicRoughnessMaterial(
-                        baseColorFactor=p.material.rgba,
+                        baseColorFactor=(*p.material.rgba[:3], ARM_ALPHA if link in self.arm_links else 1.0),
                         metallicFactor=p.material.metallic,
                         roughnessFactor=p.material.roughness,
                         doubleSided=p.material.double_sided,
@@ -191,6 +215,7 @@ class RobotRenderer:
         rgba = np.zeros((n, self.height, self.width, 4), np.uint8)
         depth = np.zeros((n, self.height, self.width), np.float32)
         boxes = np.zeros((n, 4), np.int64)
+        arm = np.zeros((n, self.height, self.width), bool) if self.arm_links else None
         for i in range(n):
             Ts = self.link_transforms(qpos[i])
             box = screen_box(self._hull_points, np.stack([root_pose[i] @ Ts[link] for link in self._link_nodes]),
@@ -207,7 +232,11 @@ class RobotRenderer:
             c, d = self._gl.render(self.scene, flags=pyrender.RenderFlags.RGBA)
             x, y, w, h = boxes[i]
             rgba[i, y:y + h, x:x + w], depth[i, y:y + h, x:x + w] = c, d
-        return RenderResult(rgba=rgba, depth=depth, boxes=boxes)
+            if arm is not None:  # the part is in the alpha: arm links below 255, then every robot pixel opaque
+                a = rgba[i, y:y + h, x:x + w, 3]
+                arm[i, y:y + h, x:x + w] = (a > 0) & (a < 255)
+                a[a > 0] = 255
+        return RenderResult(rgba=rgba, depth=depth, boxes=boxes, arm=arm)
 
     def close(self) -> None:
         """Free the GL context (from the creating thread)."""

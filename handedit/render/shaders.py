@@ -93,7 +93,9 @@ void main()
         color += nl * radiance * (c_diff / PI + f0 * spec);
     }
     color += material.emissive_factor;
-    frag_color = clamp(vec4(pow(color, vec3(1.0 / 2.2)), 1.0), 0.0, 1.0);
+    // alpha carries the part (the renderer sets 1 on hand links, ARM_ALPHA on arm links):
+    // meshes are drawn opaque (blend ONE, ZERO), so it reaches the read-back untouched
+    frag_color = clamp(vec4(pow(color, vec3(1.0 / 2.2)), material.base_color_factor.a), 0.0, 1.0);
 }
 """
 

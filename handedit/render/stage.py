@@ -17,7 +17,7 @@ class RenderConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    VERSION: ClassVar[int] = 4  # 3: decimate only simplifies dense meshes, silhouette-checked; 4: stalled passes retried
+    VERSION: ClassVar[int] = 5  # 3: decimate only simplifies dense meshes, silhouette-checked; 4: stalled passes retried; 5: robot_arm
     decimate: float | None = Field(None, gt=0.0, le=1.0, description="fraction of faces kept")
     min_visible_pixels: int = Field(20, ge=0, description="fewer robot pixels than this -> EMPTY_RENDER")
     materials: dict[str, tuple[float, float, float, float]] | None = Field(
@@ -30,6 +30,7 @@ class RenderStageResult:
     rgba: np.ndarray  # (n,H,W,4) uint8: every side's robot, nearest surface per pixel
     depth: np.ndarray  # (n,H,W) float32
     robot_side: np.ndarray  # (n,H,W) uint8: 0 no robot, k+1 the robot of hand k
+    robot_arm: np.ndarray  # (n,H,W) bool: the visible robot surface is an arm link (hand-arm; else all False)
     hand_status: np.ndarray  # (n,S) int16
     status: np.ndarray  # (n,) int16 (OK where any side rendered)
     method: str
@@ -49,6 +50,7 @@ def render_stage(embodiment_id: str, qpos: np.ndarray, root_pose: np.ndarray, re
     rgba = np.zeros((n, H, W, 4), np.uint8)
     depth = np.zeros((n, H, W), np.float32)
     side_of = np.zeros((n, H, W), np.uint8)
+    arm = np.zeros((n, H, W), bool)
     hs = np.full((n, S), Reason.UPSTREAM, np.int16)
     for k, side in enumerate(sides):
         idx = np.flatnonzero(ready[:, k])
@@ -62,7 +64,9 @@ def render_stage(embodiment_id: str, qpos: np.ndarray, root_pose: np.ndarray, re
             d, dd = out.depth[j][box], depth[i][box]
             m = (d > 0) & ((dd <= 0) | (d < dd))
             rgba[i][box][m], dd[m], side_of[i][box][m] = out.rgba[j][box][m], d[m], k + 1
+            if out.arm is not None:
+                arm[i][box][m] = out.arm[j][box][m]
             visible[j] = np.count_nonzero(out.rgba[j][box][..., 3])
         hs[idx, k] = np.where(visible >= cfg.min_visible_pixels, Reason.OK, Reason.EMPTY_RENDER)
     method = f"pyrender:egl{'' if cfg.decimate is None else f':decimate={cfg.decimate}'}"
-    return RenderStageResult(rgba, depth, side_of, hs, per_frame(hs), method)
+    return RenderStageResult(rgba, depth, side_of, arm, hs, per_frame(hs), method)

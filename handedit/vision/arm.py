@@ -25,6 +25,7 @@ NEAR_M = 0.05  # capsule segments are clipped to z >= this (the arm runs past th
 FOREARM_RADIUS_M = 0.04  # a forearm's radius; the measure of the hand-arm issue
 CORRIDOR_FRAC = 0.05  # the corridor grows by this share of the image width
 MAX_OFF_ARM = 0.35  # a hand-arm robot with more of its pixels outside the corridor is OFF_ARM (composite; the base search)
+MAX_HAND_HIDDEN = 0.2  # a robot arm over more of a human hand's pixels than this hides the robot's hand: HAND_HIDDEN
 
 
 def clip_near(a: np.ndarray, b: np.ndarray, near: float = NEAR_M) -> tuple[np.ndarray, np.ndarray] | None:
@@ -144,3 +145,25 @@ def off_arm_shares(robot_mask: np.ndarray, human_mask: np.ndarray, limbs_3d: np.
 def off_arm_status(own: np.ndarray, checked: np.ndarray, shares: np.ndarray, max_share: float) -> np.ndarray:
     """(n,S) statuses with ``OFF_ARM`` where a checked side's share exceeds ``max_share``."""
     return np.where(checked & (shares > max_share), Reason.OFF_ARM, own).astype(STATUS_DTYPE)
+
+
+def hand_hidden_shares(robot_arm: np.ndarray, hand_mask: np.ndarray, checked: np.ndarray, step: int = 2) -> np.ndarray:
+    """(n,S) share of each checked side's human hand pixels where the composite shows a robot
+    arm link, any robot's (NaN where not checked or the hand has no pixel). A robot arm is wider
+    than a human forearm: seen from the operator's eyes, a wrist module or an elbow passing near
+    the lens can hide the robot's own hand where the human hand was in view, and the pair then
+    shows an arm, not a hand doing the task. ``robot_arm`` (n,H,W) bool (render's ``robot_arm``,
+    what is left visible), ``hand_mask`` (n,S,H,W); measured on every ``step``-th pixel."""
+    n, S = hand_mask.shape[:2]
+    out = np.full((n, S), np.nan, np.float32)
+    for i, k in zip(*np.nonzero(checked)):
+        hand = hand_mask[i, k, ::step, ::step]
+        m = int(hand.sum())
+        if m:
+            out[i, k] = float((hand & robot_arm[i, ::step, ::step]).sum()) / m
+    return out
+
+
+def hand_hidden_status(own: np.ndarray, checked: np.ndarray, shares: np.ndarray, max_share: float) -> np.ndarray:
+    """(n,S) statuses with ``HAND_HIDDEN`` where a checked side's share exceeds ``max_share``."""
+    return np.where(checked & (shares > max_share), Reason.HAND_HIDDEN, own).astype(STATUS_DTYPE)

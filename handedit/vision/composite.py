@@ -32,7 +32,7 @@ from handedit.images import pixels
 from handedit.keypoints import N_JOINTS, PARENT, WRIST
 from handedit.reasons import STATUS_DTYPE, Reason, per_frame
 from handedit.metrics.similarity import bbox
-from handedit.vision.arm import CORRIDOR_FRAC, MAX_OFF_ARM
+from handedit.vision.arm import CORRIDOR_FRAC, MAX_HAND_HIDDEN, MAX_OFF_ARM
 from handedit.vision.masks import disk, grow
 from handedit.vision.occluder import OccluderConfig
 from handedit.vision.restore_background import restored_residue
@@ -40,7 +40,7 @@ from handedit.vision.skin import colour_loglik
 
 
 class CompositeConfig(pydantic.BaseModel):
-    VERSION: ClassVar[int] = 5  # 3: off-arm check; 4: residue; 5: image_occluder (what hid the fingers, opt-in)
+    VERSION: ClassVar[int] = 6  # 3: off-arm check; 4: residue; 5: image_occluder (what hid the fingers, opt-in); 6: hand hidden
     model_config = pydantic.ConfigDict(frozen=True, extra="forbid")
 
     method: Literal["classical"] = "classical"
@@ -57,6 +57,9 @@ class CompositeConfig(pydantic.BaseModel):
     max_off_arm: float = pydantic.Field(MAX_OFF_ARM, ge=0, le=1, description="hand-arm: share of a robot's pixels outside the "
                                         "human arm's corridor (handedit.vision.arm) above which -> OFF_ARM")
     arm_corridor_frac: float = pydantic.Field(CORRIDOR_FRAC, ge=0, description="the corridor grows by this share of the image width")
+    max_hand_hidden: float = pydantic.Field(MAX_HAND_HIDDEN, ge=0, le=1, description="hand-arm: share of a human hand's pixels "
+                                            "that show a robot arm link (the robot's hand hidden behind an arm) above which "
+                                            "-> HAND_HIDDEN")
     image_occluder: OccluderConfig | None = pydantic.Field(None, description=(
         "a source without an object mesh or mask: what hid the human fingers (handedit.vision.occluder) is drawn in "
         "front of the robot. Off by default: on the synthetic grasps (true masks) it finds the held object, but on the "
