@@ -21,7 +21,7 @@ from handedit.storage import Unit, writable
 from handedit.storage.layout import ArraySpec, HAND_MASK, HAND_MASK_DIMS, HAND_STATUS, RGB, RGB_DIMS, SCOPE_MASK, STATUS
 from handedit.tasks.common import ChunkJob, StageOutput
 from handedit.tasks.stage import At, Inputs, Stage
-from handedit.vision.arm import hand_hidden_shares, hand_hidden_status, limbs, off_arm_shares, off_arm_status
+from handedit.vision.arm import hand_hidden_shares, limbs, off_arm_shares, screen_status
 from handedit.vision.composite import CompositeConfig, composite as composite_frames, robot_windows
 from handedit.vision.object_depth import object_occluder
 from handedit.vision.occluder import hidden_fingers
@@ -86,11 +86,11 @@ def body(inp: Inputs, job: ChunkJob) -> StageOutput:
         limbs_3d = limbs(reg["keypoints"], reg["arm_keypoints"], src["arm_valid"]) if "arm_keypoints" in reg else None
         checked = replace & (own == Reason.OK)
         off = off_arm_shares(result.robot_mask, seg[SCOPE_MASK[scope]], limbs_3d, intr, checked, cfg.arm_corridor_frac)
-        own = off_arm_status(own, checked, off, cfg.max_off_arm)
+        own = screen_status(own, checked, off, cfg.max_off_arm, Reason.OFF_ARM)
         extra["off_arm_max"] = _side_max(off)
         checked = replace & (own == Reason.OK)  # the robot's hand is seen where the human hand was
         hidden = hand_hidden_shares(ren["robot_arm"] & result.union, seg["hand_mask"], checked)
-        own = hand_hidden_status(own, checked, hidden, cfg.max_hand_hidden)
+        own = screen_status(own, checked, hidden, cfg.max_hand_hidden, Reason.HAND_HIDDEN)
         extra["hand_hidden_max"] = _side_max(hidden)
     upstream = ren["hand_status"]
     hand_status = np.where(replace, own,

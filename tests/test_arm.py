@@ -9,7 +9,7 @@ import pytest
 from handedit.camera import Intrinsics, project
 from handedit.reasons import Reason
 from handedit.vision.arm import (MAX_HAND_HIDDEN, capsule, clip_near, corridor, coverage, forearm_capsule, hand_hidden_shares,
-                                  hand_hidden_status, limbs, off_arm_shares, outside_share)
+                                  limbs, off_arm_shares, outside_share, screen_status)
 
 INTR = Intrinsics(300.0, 300.0, 159.5, 119.5, 320, 240)
 
@@ -97,7 +97,7 @@ def test_hand_hidden_flags_an_arm_over_where_the_hand_was():
     assert shares[1, 0] == pytest.approx(1.0) and shares[2, 0] == pytest.approx(0.5)
     assert np.isnan(shares[:, 1]).all()
     own = np.full((n, S), Reason.OK, np.int16)
-    status = hand_hidden_status(own, checked, shares, MAX_HAND_HIDDEN)
+    status = screen_status(own, checked, shares, MAX_HAND_HIDDEN, Reason.HAND_HIDDEN)
     assert status[:, 0].tolist() == [Reason.OK, Reason.HAND_HIDDEN, Reason.HAND_HIDDEN]
     assert (status[:, 1] == Reason.OK).all()
 

@@ -142,9 +142,10 @@ def off_arm_shares(robot_mask: np.ndarray, human_mask: np.ndarray, limbs_3d: np.
     return out
 
 
-def off_arm_status(own: np.ndarray, checked: np.ndarray, shares: np.ndarray, max_share: float) -> np.ndarray:
-    """(n,S) statuses with ``OFF_ARM`` where a checked side's share exceeds ``max_share``."""
-    return np.where(checked & (shares > max_share), Reason.OFF_ARM, own).astype(STATUS_DTYPE)
+def screen_status(own: np.ndarray, checked: np.ndarray, shares: np.ndarray, max_share: float, reason: Reason) -> np.ndarray:
+    """(n,S) statuses with ``reason`` where a checked side's share exceeds ``max_share`` (composite's
+    hand-arm screens: ``OFF_ARM`` from ``off_arm_shares``, ``HAND_HIDDEN`` from ``hand_hidden_shares``)."""
+    return np.where(checked & (shares > max_share), reason, own).astype(STATUS_DTYPE)
 
 
 def hand_hidden_shares(robot_arm: np.ndarray, hand_mask: np.ndarray, checked: np.ndarray, step: int = 2) -> np.ndarray:
@@ -162,8 +163,3 @@ def hand_hidden_shares(robot_arm: np.ndarray, hand_mask: np.ndarray, checked: np
         if m:
             out[i, k] = float((hand & robot_arm[i, ::step, ::step]).sum()) / m
     return out
-
-
-def hand_hidden_status(own: np.ndarray, checked: np.ndarray, shares: np.ndarray, max_share: float) -> np.ndarray:
-    """(n,S) statuses with ``HAND_HIDDEN`` where a checked side's share exceeds ``max_share``."""
-    return np.where(checked & (shares > max_share), Reason.HAND_HIDDEN, own).astype(STATUS_DTYPE)
