@@ -219,6 +219,23 @@ def test_no_base_in_the_grid_is_refined(assets):
     assert res.reason == Reason.OK and res.candidates[res.chosen].stage == "refine"
 
 
+def test_a_base_off_the_arm_is_refined_too():
+    """The second grid is searched when the best of the 27 lies off the human arm or crosses its
+    forearm, not only when none survives; a plausible best, or one not measured, is enough."""
+    from handedit.retarget.virtual_base import _why_refine
+
+    def score(i, off, fa, reason=Reason.OK, crit=1.0):
+        return CandidateScore(i, 0, 0, 0, np.eye(4), int(reason), "", crit, 1.0, 5.0, 0.2, 0.1, off_corridor=off,
+                              forearm_deg=fa)
+
+    assert _why_refine([score(0, 0.0, 0.0, Reason.OUT_OF_REACH)], CFG) == "no valid base"
+    assert _why_refine([score(0, 0.05, 10.0), score(1, 0.4, 60.0)], CFG) == ""  # the best is plausible
+    assert "0.22 off the arm" in _why_refine([score(0, 0.22, 10.0)], CFG)
+    assert "40 degrees" in _why_refine([score(0, 0.1, 40.0)], CFG)
+    assert _why_refine([score(0, float("nan"), float("nan"))], CFG) == ""  # not measured (no view): the 27 stand
+    assert _why_refine([score(0, 0.22, 10.0)], CFG.model_copy(update={"refine_off_corridor": 0.3})) == ""
+
+
 def test_footprint_and_forearm_measures():
     limb = np.array([[0.0, 0.05, 0.45], [0.0, 0.1, 0.4], [0.1, 0.3, 0.35], [0.2, 0.4, 0.1]])  # palm, wrist, elbow, shoulder
     view = BaseView(INTR, limb[None], True)
@@ -257,10 +274,11 @@ def test_plausibility_ranks_before_reachability():
     assert score(0.02, 1.0).key() < score(float("nan"), 1.0).key()  # not in view ranks last
 
 
-def test_frames_composite_would_drop_as_off_arm_count_against_a_base():
-    """A base that keeps every critical frame but fills the view off the arm in most of them
-    (composite's OFF_ARM would drop those) ranks below one that loses a few to the body."""
-    full = CandidateScore(0, 0, 0, 0, np.eye(4), 1, "", 1.0, 1.0, 5.0, 0.2, 0.1, off_corridor=0.55, off_arm_rate=0.75)
+def test_frames_composite_would_drop_count_against_a_base():
+    """A base that keeps every critical frame but fills the view off the arm, or hides its own
+    hand, in most of them (composite's OFF_ARM or HAND_HIDDEN would drop those) ranks below
+    one that loses a few to the body."""
+    full = CandidateScore(0, 0, 0, 0, np.eye(4), 1, "", 1.0, 1.0, 5.0, 0.2, 0.1, off_corridor=0.55, screened_rate=0.75)
     fewer = CandidateScore(1, 0, 0, 0, np.eye(4), 1, "", 0.81, 0.81, 5.0, 0.2, 0.1, off_corridor=0.07)
     assert fewer.key() < full.key()
     assert CandidateScore(2, 0, 0, 0, np.eye(4), 1, "", 1.0, 1.0, 5.0, 0.2, 0.1, off_corridor=0.07).key() < fewer.key()
@@ -283,6 +301,28 @@ def test_the_footprint_is_the_links_visual_hulls():
     assert np.isnan(silhouette_outside([cube + (0, 0, -1.0)], view, corridor))
 
 
+def test_the_search_sees_where_an_arm_link_would_hide_the_hand():
+    """The visible surface of the footprint: a nearer link paints over a farther one, whatever
+    the order of the links; the hand's keypoint hull under a visible arm link is hidden."""
+    from handedit.retarget.plausibility import hand_hidden, silhouette
+
+    view = BaseView(INTR, np.full((1, 4, 3), np.nan), True)
+    cube = np.array([[x, y, z] for x in (-0.05, 0.05) for y in (-0.05, 0.05) for z in (-0.05, 0.05)])
+    hand_link = cube * (2, 2, 1) + (0, 0, 1.0)  # the robot hand where the human hand is
+    hand = np.array([[x, y, 1.0] for x in np.linspace(-0.08, 0.08, 5) for y in np.linspace(-0.08, 0.08, 4)] + [[0, 0, 1.0]])
+    behind, before = cube + (0.05, 0, 1.3), cube + (0.05, 0, 0.6)  # an arm link behind the hand, one near the lens
+    for links, arm, hides in (([hand_link, behind], [False, True], False), ([hand_link, before], [False, True], True),
+                              ([before, hand_link], [True, False], True)):
+        robot, arm_visible = silhouette(links, view, np.array(arm))
+        assert robot.any() and (arm_visible <= robot).all()
+        share = hand_hidden(arm_visible, hand, view)
+        assert (share > 0.3) if hides else (share == 0.0), (arm, share)
+    hand_nan = hand.copy()
+    hand_nan[2:] = np.nan  # fewer than three keypoints: not measured
+    assert np.isnan(hand_hidden(arm_visible, hand_nan, view))
+    assert not silhouette([hand_link], view)[1].any()  # no arm flags: nothing is an arm link
+
+
 def test_search_ranks_by_footprint(assets):
     """With a view, kept candidates carry footprint and forearm measures, and the ranking
     follows the key (footprint before reachability)."""
@@ -296,10 +336,12 @@ def test_search_ranks_by_footprint(assets):
     elbow = cam_from[:3, :3] @ chain[:, np.flatnonzero(arm.proximal)[1]] + cam_from[:3, 3]
     limbs = np.stack([np.stack([w, w, elbow, elbow + (0, -0.1, 0)]) for w in wrist])
     intr = Intrinsics(400.0, 400.0, 320.0, 240.0, 640, 480)
+    hand = wrist[:, None] + np.random.default_rng(0).normal(0, 0.03, (n, 21, 3))  # a hand's keypoints at the wrist
     res = search_virtual_base(targets, np.ones(n, bool), EMB, CFG, up=UP, init_base=Tb, cameras=cams,
-                              view=BaseView(intr, limbs, True))
+                              view=BaseView(intr, limbs, True, hand))
     kept = [res.candidates[i] for i in res.ranking]
     assert len(kept) > 1 and all(np.isfinite(c.off_corridor) and np.isfinite(c.forearm_deg) for c in kept)
+    assert all(0.0 <= c.hand_hidden <= 1.0 and 0.0 <= c.screened_rate <= 1.0 for c in kept)
     assert all(res.candidates[i].off_corridor == 0.0 and res.candidates[i].forearm_deg == 0.0
                for i in range(27) if i not in res.ranking)  # discarded candidates are not measured
     keys = [c.key() for c in kept]

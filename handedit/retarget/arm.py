@@ -189,6 +189,12 @@ class ArmModel:
         index, points = hull_points(model, links) if links else (np.zeros(0, int), np.zeros((0, 3)))
         return links, index, points
 
+    @functools.cached_property
+    def hull_is_arm(self) -> np.ndarray:
+        """Per link of ``hulls``: an arm link (not part of the hand), as the renderer tags them."""
+        hand = {self._n(l) for l in self.hand_kin.link_names}
+        return np.array([l not in hand for l in self.hulls[0]], bool)
+
     def link_points(self, qa: np.ndarray, frame_from_base: np.ndarray) -> list[np.ndarray]:
         """Per link with geometry, its hull points in ``frame_from_base``'s frame at arm joints ``qa``."""
         links, index, points = self.hulls

@@ -8,16 +8,20 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from handedit.vision.arm import MAX_OFF_ARM
 
+SEARCH_HAND_HIDDEN = 0.25  # composite's MAX_HAND_HIDDEN (0.2) as the search's keypoint-hull estimate reads it
+
 
 class VirtualBaseConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
-    VERSION: ClassVar[int] = 7  # 3: head-torso keep-out, critical tolerance, refinement grid, plausibility ranking;
+    VERSION: ClassVar[int] = 8  # 3: head-torso keep-out, critical tolerance, refinement grid, plausibility ranking;
     # 4: the footprint is the links' visual hulls, and frames composite would drop as off-arm count against a base;
     # 5: candidates discarded for body collisions alone are a last resort (their frames fail, not the sequence);
     # 6: a candidate's first frame tries Newton from its neighbour's solution before any cold IPOPT;
     # 7: the hand's own wrist joints (Shadow, ORCA) are arm joints of the IK (``arm.ArmModel``); the dual-arm
     # check tries the best dual_arm_candidates of each side, not 3; a candidate past its critical tolerance is not
-    # solved further (its remaining frames read NO_VALID_BASE); previews are rendered when asked for (``previews``)
+    # solved further (its remaining frames read NO_VALID_BASE); previews are rendered when asked for (``previews``);
+    # 8: frames where the robot's own arm would hide its hand (composite's HAND_HIDDEN) count against a base too;
+    # the second grid is searched when the best of the 27 lies off the human arm, not only when none survives
 
     init_back: float = Field(0.55, description="base distance behind the wrist centre, in L_r")
     init_up: float = Field(0.10, description="base height above the wrist centre, in L_r")
@@ -48,11 +52,19 @@ class VirtualBaseConfig(BaseModel):
                                     "body collisions discard every candidate of both grids, those are kept as a last resort")
     refine_reach_frac: float = Field(0.65, gt=0, le=1, description="when none of the 27 survive: a second grid whose centre puts "
                                      "the wrist targets this share of L_r from the arm's first joint")
+    refine_off_corridor: float = Field(0.15, ge=0, le=1, description="the second grid is searched too when the best of the "
+                                       "27 has more than this share of its footprint outside the human arm's corridor")
+    refine_forearm_deg: float = Field(30.0, ge=0, le=180, description="or its forearm more than this many degrees off the "
+                                      "human forearm")
     plausibility_frames: int = Field(8, ge=0, description="frames per candidate on which the footprint and forearm measures "
                                      "are taken (0: plausibility not ranked)")
     max_off_arm: float = Field(MAX_OFF_ARM, ge=0, le=1, description="a sampled frame whose footprint lies more than this share "
                                "outside the human arm's corridor counts as lost, as composite's OFF_ARM screen "
                                "(its max_off_arm) would drop it")
+    max_hand_hidden: float = Field(SEARCH_HAND_HIDDEN, ge=0, le=1, description="a sampled frame where the robot's own arm "
+                                   "covers more than this share of the human hand's keypoint hull counts as lost, as "
+                                   "composite's HAND_HIDDEN screen would drop it (the hull is smaller than the hand's "
+                                   "mask: 0.25 here reads as composite's 0.2)")
     body_seeds: int = Field(10, ge=0, description="first frame: random IK restarts added when no seed's arm keeps clear of "
                             "the operator's body")
     review: Literal["auto_top1", "manual"] = "auto_top1"

@@ -123,8 +123,9 @@ def _solve(embodiment_id: str, cfg: RetargetConfig, vb_cfg: VirtualBaseConfig, c
     vb = search_virtual_base(targets, ok, embodiment_id, vb_cfg, up=up, support_plane=plane, shoulders=shoulders,
                              cameras=cameras, critical=critical, view=view)
     if vb.diagnosis.get("refined"):
-        notes.append(f"no base among the paper's 27 candidates; refined around a base {vb_cfg.refine_reach_frac} L_r "
-                     f"from the wrist targets (they were {vb.diagnosis['target_distance_Lr']} L_r away)")
+        notes.append(f"{vb.diagnosis['refined_for']} among the paper's 27 candidates; refined around a base "
+                     f"{vb_cfg.refine_reach_frac} L_r from the wrist targets (they were "
+                     f"{vb.diagnosis['target_distance_Lr']} L_r away)")
     if choice is not None and vb.reason == Reason.OK:
         try:
             vb = apply_review(vb, choice, arm)

@@ -14,7 +14,12 @@ rendering; the third, the operator's head and torso as a keep-out volume, is
   what fills the view: Jaka's thick upper arm beside the camera measured 4 % outside where
   the rendered robot was more than 35 % outside;
 * ``forearm_angle``: the angle between the robot's forearm and the human forearm (ties go
-  to the candidate that follows the human arm).
+  to the candidate that follows the human arm);
+* ``hand_hidden``: the share of the human hand's footprint (its keypoints' hull) where the
+  robot's visible surface is an arm link, composite's HAND_HIDDEN screen before rendering:
+  seen from the operator's eyes, a robot forearm near the lens can hide its own hand. The
+  hull is smaller than the hand's mask (fingers' width, the wrist), so this reads about 1.3x
+  composite's share on the same frame (EgoDex add_remove_lid, xArm+Ability and Panda+Allegro).
 
 Where the source does not track the arm, the human forearm is continued from the hand
 (wrist, away from the middle knuckle, ``FOREARM_HINT_M``): its direction, not its length.
@@ -42,11 +47,13 @@ class BaseView:
     intr: the camera at the working resolution (the mirrored camera for a left side);
     limbs: (T,m,3) per frame the human polyline palm -> wrist -> elbow -> shoulder in the
     camera frame, NaN after its tracked part (``human_limbs``); tracked_arm: whether the
-    elbow/shoulder come from the source (else the forearm is the hint)."""
+    elbow/shoulder come from the source (else the forearm is the hint); hand: the hand's
+    keypoints (``hand_hidden``; None: not measured)."""
 
     intr: Intrinsics
     limbs: np.ndarray
     tracked_arm: bool
+    hand: np.ndarray | None = None  # (T,21,3) the hand's keypoints in the same camera frame, NaN where not valid
     _corridors: dict = field(default_factory=dict, repr=False, compare=False)
 
     def corridor(self, i: int) -> np.ndarray:
@@ -104,23 +111,47 @@ def footprint_outside(robot_cam: np.ndarray, limb_cam: np.ndarray, view: BaseVie
     return outside_share(robot, human_corridor(limb_cam, view, frac) if corridor_mask is None else corridor_mask)
 
 
-def silhouette_outside(links_cam: list[np.ndarray], view: BaseView, corridor_mask: np.ndarray) -> float:
-    """Share of the robot's footprint outside the human arm's corridor (``corridor_mask``:
-    ``BaseView.corridor``), the footprint being each link's visual hull (``links_cam``: its
-    points in the camera frame, ``ArmModel.link_points``) projected and filled; points
-    behind the near plane are pulled onto it. NaN when no link is in view."""
+def silhouette(links_cam: list[np.ndarray], view: BaseView, arm: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The robot's footprint on the footprint image and where an arm link (``arm``: per link,
+    ``ArmModel.hull_is_arm``) is its visible surface: each link's visual hull (``links_cam``:
+    its points in the camera frame, ``ArmModel.link_points``) projected and filled, nearer
+    links (by mean depth) over farther; points behind the near plane are pulled onto it."""
     intr, shape = _footprint_camera(view)
-    robot = np.zeros(shape, np.uint8)
-    for p in links_cam:
-        if not len(p) or (p[:, 2] <= 0).all():
-            continue
+    label = np.zeros(shape, np.uint8)  # 0: no robot, 1: hand link, 2: arm link
+    drawn = [(float(np.mean(p[:, 2])), k) for k, p in enumerate(links_cam) if len(p) and (p[:, 2] > 0).any()]
+    for _, k in sorted(drawn, reverse=True):  # far to near: a nearer link paints over
+        p = links_cam[k]
         z = np.maximum(p[:, 2], NEAR_M)
         uv = np.stack([intr.fx * p[:, 0] / z + intr.cx, intr.fy * p[:, 1] / z + intr.cy], axis=1)
         hull = cv2.convexHull(np.clip(np.round(uv), -1e5, 1e5).astype(np.int32))
-        cv2.fillConvexPoly(robot, hull, 1)
+        cv2.fillConvexPoly(label, hull, 2 if arm is not None and arm[k] else 1)
+    return label > 0, label == 2
+
+
+def silhouette_outside(links_cam: list[np.ndarray], view: BaseView, corridor_mask: np.ndarray,
+                       robot: np.ndarray | None = None) -> float:
+    """Share of the robot's footprint (``silhouette``, or ``robot`` when the caller has it)
+    outside the human arm's corridor (``corridor_mask``: ``BaseView.corridor``). NaN when no
+    link is in view."""
+    robot = silhouette(links_cam, view)[0] if robot is None else robot
     if not robot.any():
         return float("nan")
-    return outside_share(robot.astype(bool), corridor_mask)
+    return outside_share(robot, corridor_mask)
+
+
+def hand_hidden(arm_visible: np.ndarray, hand_cam: np.ndarray, view: BaseView) -> float:
+    """Share of the human hand's footprint (the hull of its keypoints ``hand_cam``, camera
+    frame, NaN where not valid) where an arm link is the robot's visible surface
+    (``silhouette``'s second mask); NaN when fewer than three keypoints are in front."""
+    intr, shape = _footprint_camera(view)
+    p = hand_cam[np.isfinite(hand_cam).all(-1) & (hand_cam[:, 2] > NEAR_M)] if hand_cam is not None else np.zeros((0, 3))
+    if len(p) < 3:
+        return float("nan")
+    uv = np.stack([intr.fx * p[:, 0] / p[:, 2] + intr.cx, intr.fy * p[:, 1] / p[:, 2] + intr.cy], axis=1)
+    hand = np.zeros(shape, np.uint8)
+    cv2.fillConvexPoly(hand, cv2.convexHull(np.clip(np.round(uv), -1e5, 1e5).astype(np.int32)), 1)
+    m = int(hand.sum())
+    return float((arm_visible & (hand > 0)).sum()) / m if m else float("nan")
 
 
 def forearm_angle(robot_cam: np.ndarray, limb_cam: np.ndarray) -> float:

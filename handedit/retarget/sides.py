@@ -126,7 +126,9 @@ def retarget_hand_arm_sides(keypoints: np.ndarray, keypoints_valid: np.ndarray, 
         if intr is not None:
             limbs, tracked_arm = human_limbs(kp[:, k], None if arm_keypoints is None else arm_keypoints[:, k],
                                              None if arm_valid is None else arm_valid[:, k])
-            view = BaseView(preview_intrinsics(intr, side), mirror_keypoints(limbs) if side == "left" else limbs, tracked_arm)
+            hand = np.where(valid[..., None], kpk, np.nan)  # the side's view (mirrored for a left hand)
+            view = BaseView(preview_intrinsics(intr, side), mirror_keypoints(limbs) if side == "left" else limbs, tracked_arm,
+                            hand)
         res = retarget_hand_arm(kpk, valid, embodiment_id, cfg, world_from_camera=wfc, choice=choice, world=world,
                                 shoulders=sh, view=view, object_mesh=mesh, object_pose=pose)
         qc = retarget_qc(res.hand, kpk, valid, embodiment_id,
