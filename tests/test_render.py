@@ -306,6 +306,26 @@ HAND_ARMS = ["panda_allegro", "ur5_inspire", "ur5_schunk_svh", "ur5_shadow", "xa
 NEW_HANDS = ["orca", "revo2", "sharpa", "wuji", "dexhand021", "rohand"]  # hands wired from the assets' newer robots
 
 
+@pytest.mark.parametrize("emb_id", HAND_ARMS + ["allegro", "leap"] + NEW_HANDS)
+def test_renderer_fk_equals_the_scene_graph(robots_dir, monkeypatch, emb_id):
+    """The renderer's one-pass FK (``render.fk.LinkFK``) gives yourdfpy's scene-graph transforms,
+    polynomial mimics included (RoHand), at random configurations."""
+    from handedit.embodiments.linkage import poly_mimics, update_cfg
+    from handedit.render import embodiment_renderer
+
+    monkeypatch.setenv("HANDEDIT_ASSET_DIRS", str(robots_dir))
+    r = embodiment_renderer(emb_id, W, H)
+    lo, hi = joint_limits(r.urdf)
+    polys = poly_mimics(r.urdf_path)
+    assert (emb_id in ("rohand", "rm75_rohand")) == bool(polys)
+    for seed in range(3):
+        q = np.random.default_rng(seed).uniform(lo, hi)
+        ours = r.link_transforms(q)
+        update_cfg(r.urdf, q, polys)
+        for link, T in ours.items():
+            np.testing.assert_allclose(T, r.urdf.get_transform(link, r.urdf.base_link), atol=1e-9, err_msg=link)
+
+
 @pytest.mark.parametrize("emb_id", HAND_ARMS + ["leap"] + NEW_HANDS)
 def test_embodiment_render_contains_projected_fk_links(robots_dir, monkeypatch, emb_id):
     """Every available hand-arm (composed URDF, roster colours) renders inside the image and the
@@ -373,7 +393,8 @@ def test_jaka_joint_caps_are_blue_faces_of_its_grey_links(robots_dir, monkeypatc
 def test_screen_box_render_equals_the_full_frame(robots_dir, monkeypatch, emb_id):
     """Rendering only the robot's screen box (scissored clear, box read-back) gives the full
     frame's pixels exactly; the boxes hold every robot pixel; a robot off screen is not drawn;
-    one partly behind the near plane falls back to the full frame."""
+    one the near plane cuts is boxed too (its clipped hull), and so is one whose links cross
+    the near plane beside the camera."""
     import handedit.render.renderer as renderer_mod
     from handedit.render import embodiment_renderer
 
@@ -381,23 +402,40 @@ def test_screen_box_render_equals_the_full_frame(robots_dir, monkeypatch, emb_id
     r = embodiment_renderer(emb_id, W, H)
     q, T = scenario(r)
     q2, T2 = scenario(r, seed=3)
-    away, near = T.copy(), T.copy()
+    away, near, beside = T.copy(), T.copy(), T.copy()
     away[:3, 3] += [5.0, 0.0, 0.0]  # far to the right of the view
-    near[2, 3] = 0.02  # the near plane cuts the robot
-    qs, Ts = np.stack([q, q2, q, q]), np.stack([T, T2, away, near])
+    z = (r.points(q) @ T[:3, :3].T + T[:3, 3])[:, 2]
+    near[2, 3] -= z.min() + 0.3 * (z.max() - z.min())  # the near plane cuts the robot: its nearest 30 % behind the lens
+    beside[:3, 3] += [0.3 * (z.max() - z.min()), 0.0, near[2, 3] - T[2, 3]]  # and to the right of the axis
+    qs, Ts = np.stack([q, q2, q, q, q]), np.stack([T, T2, away, near, beside])
     boxed = r.render(qs, Ts, INTR)
-    monkeypatch.setattr(renderer_mod, "screen_box", lambda *a, **k: None)
+    monkeypatch.setattr(renderer_mod, "screen_box", lambda *a, **k: (0, 0, W, H))
     full = r.render(qs, Ts, INTR)
     np.testing.assert_array_equal(boxed.rgba, full.rgba)
     np.testing.assert_array_equal(boxed.depth, full.depth)
     assert boxed.mask[:2].sum() > 0.01 * W * H and not boxed.mask[2].any()
-    for i in range(2):
-        x, y, w, h = boxed.boxes[i]
-        assert 0 < w * h < W * H  # a real crop
+    for i in (0, 1, 3, 4):
         outside = boxed.mask[i].copy()
         outside[boxed.box(i)] = False
-        assert not outside.any()
-    assert tuple(boxed.boxes[3]) == (0, 0, W, H)
+        assert not outside.any(), i
+    for i in (0, 1):
+        x, y, w, h = boxed.boxes[i]
+        assert 0 < w * h < W * H  # a real crop
+    assert all(full.mask[i].any() for i in (3, 4)), "the near-plane cases must show part of the robot"
+    assert any(0 < boxed.boxes[i][2] * boxed.boxes[i][3] < W * H for i in (3, 4)), "a cut robot gets a real crop too"
+
+
+def test_near_clipped_hull_holds_what_the_plane_leaves():
+    """A cube crossing the near plane: the clipped points lie in front of it and span the part
+    of the cube in front (x, y within the cube's, z from the plane to the cube's front)."""
+    from handedit.render.renderer import NEAR_CLIP, Z_NEAR, _near_clipped
+
+    cube = np.array([[x, y, z] for x in (-0.1, 0.1) for y in (-0.2, 0.2) for z in (-0.05, 0.05)])
+    behind = cube + (0, 0, -1.0)  # a second link wholly behind the camera drops out
+    p = _near_clipped(np.concatenate([cube, behind]), np.array([0] * 8 + [1] * 8))
+    assert (p[:, 2] > Z_NEAR).all() and np.isclose(p[:, 2].min(), NEAR_CLIP) and np.isclose(p[:, 2].max(), 0.05)
+    np.testing.assert_allclose([p[:, 0].min(), p[:, 0].max(), p[:, 1].min(), p[:, 1].max()], [-0.1, 0.1, -0.2, 0.2])
+    assert len(_near_clipped(behind, np.zeros(8, int))) == 0
 
 
 def test_a_collected_renderer_leaves_the_current_context_alone(robots_dir):

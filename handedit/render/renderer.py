@@ -19,7 +19,8 @@ import numpy as np  # noqa: E402
 import pyrender  # noqa: E402
 
 from handedit.camera import CV_TO_GL, Intrinsics  # noqa: E402
-from handedit.embodiments.linkage import poly_mimics, update_cfg  # noqa: E402
+from handedit.embodiments.linkage import poly_mimics  # noqa: E402
+from handedit.render.fk import LinkFK  # noqa: E402
 from handedit.render.gl import Scene, make_offscreen  # noqa: E402
 from handedit.render.model import Rgba, RobotModel, build_model, hull_points  # noqa: E402
 
@@ -85,18 +86,64 @@ def arm_links(urdf, hand_root: str) -> frozenset[str]:
 
 
 def screen_box(points: np.ndarray, camera_from_link: np.ndarray, link: np.ndarray, intr: Intrinsics,
-               margin: int = 2) -> tuple[int, int, int, int] | None:
-    """(x, y, w, h) pixel box holding every pixel the points' hull can cover, clipped to the
-    image (w or h 0: off screen); None (render the full frame) when a point is not in front
-    of the near plane, where the projection no longer bounds the clipped geometry."""
+               margin: int = 2, corners: np.ndarray | None = None) -> tuple[int, int, int, int]:
+    """(x, y, w, h) pixel box holding every pixel the links' hulls can cover, clipped to the
+    image (w or h 0: off screen). ``points``: each link's hull points, ``link`` the link of each
+    (``hull_points``); ``corners``: (links, 8, 3) each link's box in its own frame (``link_corners``).
+    A link that crosses the near plane is drawn clipped there: its visible part lies in the hull
+    of its box's corners in front and of where its edges cross the plane (``_near_clipped``; the
+    box, 8 corners, not the hull's hundreds of points, which cost more than the pixels saved).
+    A hand-arm's base is behind the head camera and its upper arm passes beside it: without the
+    clip every hand-arm frame was drawn full-frame."""
     T = camera_from_link[link]
     p = np.einsum("mij,mj->mi", T[:, :3, :3], points) + T[:, :3, 3]
-    if (p[:, 2] <= Z_NEAR).any():
-        return None
+    behind = p[:, 2] <= NEAR_CLIP
+    if behind.any():
+        cut = np.unique(link[behind])
+        keep = ~np.isin(link, cut)
+        if corners is None:  # the hull points themselves: exact, slow
+            c, cl = p[~keep], link[~keep]
+        else:
+            C = camera_from_link[cut]
+            c = (np.einsum("kij,kpj->kpi", C[:, :3, :3], corners[cut]) + C[:, None, :3, 3]).reshape(-1, 3)
+            cl = np.repeat(cut, corners.shape[1])
+        p = np.concatenate([p[keep], _near_clipped(c, cl)])
+        if not len(p):
+            return 0, 0, 0, 0
     u, v = intr.fx * p[:, 0] / p[:, 2] + intr.cx, intr.fy * p[:, 1] / p[:, 2] + intr.cy
     x0, x1 = max(int(np.floor(u.min())) - margin, 0), min(int(np.ceil(u.max())) + margin, intr.width)
     y0, y1 = max(int(np.floor(v.min())) - margin, 0), min(int(np.ceil(v.max())) + margin, intr.height)
     return x0, y0, max(x1 - x0, 0), max(y1 - y0, 0)
+
+
+def link_corners(points: np.ndarray, link: np.ndarray, n_links: int) -> np.ndarray:
+    """(n_links, 8, 3) the corners of each link's axis-aligned box in its own frame (it holds the hull)."""
+    out = np.zeros((n_links, 8, 3))
+    for k in range(n_links):
+        q = points[link == k]
+        if len(q):
+            lo, hi = q.min(0), q.max(0)
+            out[k] = [[(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[m][2]] for i in (0, 1) for j in (0, 1) for m in (0, 1)]
+    return out
+
+
+NEAR_CLIP = Z_NEAR * 1.001  # crossing points sit just in front of the near plane, where the projection is finite
+
+
+def _near_clipped(p: np.ndarray, link: np.ndarray) -> np.ndarray:
+    """The points of each link in front of the near plane plus, for a link with points on both
+    sides, the crossings of every segment between a point in front and one behind (a convex
+    hull clipped by a plane is the hull of those); links wholly behind drop out."""
+    front = p[:, 2] > NEAR_CLIP
+    out = [p[front]]
+    for k in np.unique(link[~front]):
+        mine = link == k
+        a, b = p[mine & front], p[mine & ~front]
+        if not len(a):
+            continue
+        t = (NEAR_CLIP - b[:, None, 2]) / (a[None, :, 2] - b[:, None, 2])  # along b -> a
+        out.append((b[:, None] + t[..., None] * (a[None] - b[:, None])).reshape(-1, 3))
+    return np.concatenate(out)
 
 
 class RobotRenderer:
@@ -127,8 +174,7 @@ class RobotRenderer:
         self.model: RobotModel = build_model(self.urdf_path, materials=materials, decimate=decimate)
         self.urdf = self.model.urdf
         self.joint_names: list[str] = list(self.urdf.actuated_joint_names)
-        self._polys = poly_mimics(self.urdf_path)
-        self._base = self.urdf.base_link
+        self._fk = LinkFK(self.urdf, poly_mimics(self.urdf_path))
         self._thread = threading.get_ident()
         self.arm_links = arm_links(self.urdf, hand_root) if hand_root is not None else frozenset()
 
@@ -163,6 +209,7 @@ class RobotRenderer:
         self.scene.add(self._camera, pose=np.eye(4))
         self._gl = make_offscreen(self.width, self.height)
         self._hull_link, self._hull_points = hull_points(self.model, list(self._link_nodes))
+        self._hull_corners = link_corners(self._hull_points, self._hull_link, len(self._link_nodes))
 
     @property
     def n_faces(self) -> int:
@@ -170,8 +217,8 @@ class RobotRenderer:
 
     def link_transforms(self, q: np.ndarray) -> dict[str, np.ndarray]:
         """root_link_from_link (4x4) for every link with visual geometry at configuration ``q``."""
-        update_cfg(self.urdf, q, self._polys)
-        return {link: self.urdf.get_transform(link, self._base) for link in self._link_nodes}
+        T = self._fk(q)
+        return {link: T[link] for link in self._link_nodes}
 
     def points(self, q: np.ndarray, per_part: int = 400) -> np.ndarray:
         """A subsample of visual vertices in the root-link frame at ``q`` (for framing and checks)."""
@@ -219,9 +266,9 @@ class RobotRenderer:
         for i in range(n):
             Ts = self.link_transforms(qpos[i])
             box = screen_box(self._hull_points, np.stack([root_pose[i] @ Ts[link] for link in self._link_nodes]),
-                             self._hull_link, intrinsics)
-            boxes[i] = box or (0, 0, self.width, self.height)
-            if box is not None and (box[2] == 0 or box[3] == 0):
+                             self._hull_link, intrinsics, corners=self._hull_corners)
+            boxes[i] = box
+            if box[2] == 0 or box[3] == 0:
                 continue  # entirely off screen
             gl_from_root = CV_TO_GL @ root_pose[i]
             for link, T in Ts.items():
