@@ -62,10 +62,12 @@ def render_stage(embodiment_id: str, qpos: np.ndarray, root_pose: np.ndarray, re
         for j, i in enumerate(idx):  # inside the render's box: nothing of this side lies outside it
             box = out.box(j)
             d, dd = out.depth[j][box], depth[i][box]
-            m = (d > 0) & ((dd <= 0) | (d < dd))
-            rgba[i][box][m], dd[m], side_of[i][box][m] = out.rgba[j][box][m], d[m], k + 1
+            m = (d > 0) & ((dd <= 0) | (d < dd))  # this side's surface is the nearer one
+            np.copyto(rgba[i][box], out.rgba[j][box], where=m[..., None])
+            np.copyto(dd, d, where=m)
+            np.copyto(side_of[i][box], k + 1, where=m)
             if out.arm is not None:
-                arm[i][box][m] = out.arm[j][box][m]
+                np.copyto(arm[i][box], out.arm[j][box], where=m)
             visible[j] = np.count_nonzero(out.rgba[j][box][..., 3])
         hs[idx, k] = np.where(visible >= cfg.min_visible_pixels, Reason.OK, Reason.EMPTY_RENDER)
     method = f"pyrender:egl{'' if cfg.decimate is None else f':decimate={cfg.decimate}'}"

@@ -24,7 +24,7 @@ from handedit.reasons import STATUS_DTYPE, Reason
 NEAR_M = 0.05  # capsule segments are clipped to z >= this (the arm runs past the camera)
 FOREARM_RADIUS_M = 0.04  # a forearm's radius; the measure of the hand-arm issue
 CORRIDOR_FRAC = 0.05  # the corridor grows by this share of the image width
-MAX_OFF_ARM = 0.35  # a hand-arm robot with more of its pixels outside the corridor is OFF_ARM (composite; the base search)
+MAX_OFF_ARM = 0.25  # a hand-arm robot with more of its pixels outside the corridor is OFF_ARM (composite; the base search)
 MAX_HAND_HIDDEN = 0.2  # a robot arm over more of a human hand's pixels than this hides the robot's hand: HAND_HIDDEN
 
 
