@@ -144,6 +144,28 @@ def test_shoulder_initialisation(assets):
     assert T0[:3, 0] @ fwd / np.linalg.norm(fwd) > 0.999
 
 
+def test_segment_distances_against_brute_force():
+    """All pairs at once (``seg_dists``) match a dense search over both segments' parameters,
+    for general, parallel, crossing and point-like segments."""
+    from handedit.retarget.virtual_base import seg_dists
+
+    rng = np.random.default_rng(7)
+    p1, q1, p2, q2 = (rng.normal(0, 0.3, (60, 3)) for _ in range(4))
+    q2[:10] = p2[:10] + (q1[:10] - p1[:10]) * 0.7  # parallel
+    q1[10:15] = p1[10:15]  # the first a point
+    q2[15:20] = p2[15:20]  # the second a point
+    q1[20:25], q2[20:25] = p1[20:25], p2[20:25]  # both points
+    p2[25:30] = (p1[25:30] + q1[25:30]) / 2  # touching
+    got = seg_dists(p1, q1, p2, q2)
+    u = np.linspace(0, 1, 401)
+    for k in range(len(got)):
+        a = p1[k] + u[:, None] * (q1[k] - p1[k])
+        b = p2[k] + u[:, None] * (q2[k] - p2[k])
+        brute = np.linalg.norm(a[:, None] - b[None], axis=-1).min()
+        assert got[k] <= brute + 1e-12 and got[k] >= brute - 0.005, (k, got[k], brute)
+    assert np.allclose(got[25:30], 0.0, atol=1e-12)
+
+
 def test_collision_primitives():
     z = np.zeros(3)
     assert _seg_dist(z, np.array([1.0, 0, 0]), np.array([0.5, 0.2, 0]), np.array([0.5, 1.0, 0])) == pytest.approx(0.2)

@@ -1,10 +1,10 @@
 """Base plausibility inside the virtual-base search: the paper's operator review, as numbers.
 
 The paper's operator drops a base whose robot arm fills the view where no human arm was,
-passes through the operator's head, or reaches in from an odd direction. Two measures
-stand in for that look, from the robot's geometry and the search's joint tracks (no GL
-rendering; the third, the operator's head and torso as a keep-out volume, is
-``virtual_base.body_distance``):
+passes through the operator's head, reaches in from an odd direction, or hides the hand
+doing the task. Three measures stand in for that look, from the robot's geometry and the
+search's joint tracks (no GL rendering; the operator's head and torso as a keep-out volume
+is ``virtual_base.body_distance``):
 
 * ``silhouette_outside``: the share of the robot's projected footprint (each link's visual
   hull, filled; ``footprint_outside`` draws capsules around the links' origins instead, for
