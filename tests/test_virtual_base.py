@@ -12,11 +12,11 @@ from handedit.reasons import Reason
 from handedit.retarget.arm import arm_model
 from handedit.retarget.virtual_base import (
     VirtualBaseConfig,
-    _seg_dist,
     arms_collide,
     candidate_grid,
     initial_base,
     search_virtual_base,
+    seg_dists,
     self_collision,
     upright_frame,
 )
@@ -147,8 +147,6 @@ def test_shoulder_initialisation(assets):
 def test_segment_distances_against_brute_force():
     """All pairs at once (``seg_dists``) match a dense search over both segments' parameters,
     for general, parallel, crossing and point-like segments."""
-    from handedit.retarget.virtual_base import seg_dists
-
     rng = np.random.default_rng(7)
     p1, q1, p2, q2 = (rng.normal(0, 0.3, (60, 3)) for _ in range(4))
     q2[:10] = p2[:10] + (q1[:10] - p1[:10]) * 0.7  # parallel
@@ -168,8 +166,9 @@ def test_segment_distances_against_brute_force():
 
 def test_collision_primitives():
     z = np.zeros(3)
-    assert _seg_dist(z, np.array([1.0, 0, 0]), np.array([0.5, 0.2, 0]), np.array([0.5, 1.0, 0])) == pytest.approx(0.2)
-    assert _seg_dist(z, np.array([1.0, 0, 0]), np.array([2.0, 0, 0]), np.array([3.0, 0, 0])) == pytest.approx(1.0)
+    x = np.array([[1.0, 0, 0]])
+    assert seg_dists(z[None], x, np.array([[0.5, 0.2, 0]]), np.array([[0.5, 1.0, 0]]))[0] == pytest.approx(0.2)
+    assert seg_dists(z[None], x, np.array([[2.0, 0, 0]]), np.array([[3.0, 0, 0]]))[0] == pytest.approx(1.0)
     # a chain folded back onto itself collides; a straight one does not
     straight = np.array([[0, 0, 0], [0, 0, 0.3], [0, 0, 0.6], [0, 0, 0.9], [0, 0, 1.2]], float).T
     folded = np.array([[0, 0, 0], [0, 0, 0.3], [0.03, 0, 0.35], [0.08, 0, 0.3], [0.06, 0, 0.0]], float).T

@@ -86,7 +86,7 @@ def arm_links(urdf, hand_root: str) -> frozenset[str]:
 
 
 def screen_box(points: np.ndarray, camera_from_link: np.ndarray, link: np.ndarray, intr: Intrinsics,
-               margin: int = 2, corners: np.ndarray | None = None) -> tuple[int, int, int, int]:
+               corners: np.ndarray, margin: int = 2) -> tuple[int, int, int, int]:
     """(x, y, w, h) pixel box holding every pixel the links' hulls can cover, clipped to the
     image (w or h 0: off screen). ``points``: each link's hull points, ``link`` the link of each
     (``hull_points``); ``corners``: (links, 8, 3) each link's box in its own frame (``link_corners``).
@@ -101,12 +101,9 @@ def screen_box(points: np.ndarray, camera_from_link: np.ndarray, link: np.ndarra
     if behind.any():
         cut = np.unique(link[behind])
         keep = ~np.isin(link, cut)
-        if corners is None:  # the hull points themselves: exact, slow
-            c, cl = p[~keep], link[~keep]
-        else:
-            C = camera_from_link[cut]
-            c = (np.einsum("kij,kpj->kpi", C[:, :3, :3], corners[cut]) + C[:, None, :3, 3]).reshape(-1, 3)
-            cl = np.repeat(cut, corners.shape[1])
+        C = camera_from_link[cut]
+        c = (np.einsum("kij,kpj->kpi", C[:, :3, :3], corners[cut]) + C[:, None, :3, 3]).reshape(-1, 3)
+        cl = np.repeat(cut, corners.shape[1])
         p = np.concatenate([p[keep], _near_clipped(c, cl)])
         if not len(p):
             return 0, 0, 0, 0
@@ -266,7 +263,7 @@ class RobotRenderer:
         for i in range(n):
             Ts = self.link_transforms(qpos[i])
             box = screen_box(self._hull_points, np.stack([root_pose[i] @ Ts[link] for link in self._link_nodes]),
-                             self._hull_link, intrinsics, corners=self._hull_corners)
+                             self._hull_link, intrinsics, self._hull_corners)
             boxes[i] = box
             if box[2] == 0 or box[3] == 0:
                 continue  # entirely off screen

@@ -243,11 +243,6 @@ def seg_dists(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray) ->
     return np.linalg.norm(r + d1 * s[:, None] - d2 * t[:, None], axis=1)
 
 
-def _seg_dist(p1, q1, p2, q2) -> float:
-    """Distance between segments [p1,q1] and [p2,q2]."""
-    return float(seg_dists(*(np.asarray(v, float)[None] for v in (p1, q1, p2, q2)))[0])
-
-
 def _segments(chain: np.ndarray, moving: np.ndarray, labels: np.ndarray | None = None):
     """Capsule axes between consecutive distinct chain points, starting at the last fixed
     point; with ``labels`` (per point) also each segment's end-point label."""
