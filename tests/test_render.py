@@ -391,8 +391,8 @@ def test_jaka_joint_caps_are_blue_faces_of_its_grey_links(robots_dir, monkeypatc
 
 @pytest.mark.parametrize("emb_id", ["allegro", "xarm_ability"])
 def test_screen_box_render_equals_the_full_frame(robots_dir, monkeypatch, emb_id):
-    """Rendering only the robot's screen box (scissored clear, box read-back) gives the full
-    frame's pixels exactly; the boxes hold every robot pixel; a robot off screen is not drawn;
+    """Rendering only the robot's screen box (scissored clear, box read-back) and only the links
+    in view gives the full frame's pixels exactly, with every link drawn; the boxes hold every robot pixel; a robot off screen is not drawn;
     one the near plane cuts is boxed too (its clipped hull), and so is one whose links cross
     the near plane beside the camera."""
     import handedit.render.renderer as renderer_mod
@@ -410,6 +410,7 @@ def test_screen_box_render_equals_the_full_frame(robots_dir, monkeypatch, emb_id
     qs, Ts = np.stack([q, q2, q, q, q]), np.stack([T, T2, away, near, beside])
     boxed = r.render(qs, Ts, INTR)
     monkeypatch.setattr(renderer_mod, "screen_box", lambda *a, **k: (0, 0, W, H))
+    monkeypatch.setattr(renderer_mod, "out_of_view", lambda c, *a: np.zeros(len(c), bool))  # every link drawn
     full = r.render(qs, Ts, INTR)
     np.testing.assert_array_equal(boxed.rgba, full.rgba)
     np.testing.assert_array_equal(boxed.depth, full.depth)
@@ -423,6 +424,22 @@ def test_screen_box_render_equals_the_full_frame(robots_dir, monkeypatch, emb_id
         assert 0 < w * h < W * H  # a real crop
     assert all(full.mask[i].any() for i in (3, 4)), "the near-plane cases must show part of the robot"
     assert any(0 < boxed.boxes[i][2] * boxed.boxes[i][3] < W * H for i in (3, 4)), "a cut robot gets a real crop too"
+
+
+def test_links_out_of_view_are_the_ones_no_pixel_shows():
+    """A link is skipped only when its box lies wholly beyond one plane of the view: behind the
+    camera, or past an image edge (even with corners behind the camera); one that straddles an
+    edge or the near plane is drawn."""
+    from handedit.render.renderer import out_of_view
+
+    cube = np.array([[x, y, z] for x in (-0.05, 0.05) for y in (-0.05, 0.05) for z in (-0.05, 0.05)])
+    at = {"in view": (0, 0, 1.0), "behind": (0, 0, -0.5), "left": (-3.0, 0, 1.0), "below": (0, 3.0, 1.0),
+          "right, reaching behind": (2.0, 0, 0.02), "on the left edge": (-0.6, 0, 1.0), "through the lens": (0, 0, 0.03)}
+    poses = np.tile(np.eye(4), (len(at), 1, 1))
+    poses[:, :3, 3] = list(at.values())
+    out = dict(zip(at, out_of_view(poses, np.tile(cube, (len(at), 1, 1)), INTR)))
+    assert out == {"in view": False, "behind": True, "left": True, "below": True, "right, reaching behind": True,
+                   "on the left edge": False, "through the lens": False}, out
 
 
 def test_near_clipped_hull_holds_what_the_plane_leaves():

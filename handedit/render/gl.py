@@ -176,18 +176,20 @@ def _region_reads(gl: pyrender.OffscreenRenderer) -> None:
         if gl.region is None or not flags & pyrender.RenderFlags.RGBA:
             return full_read(scene, flags)
         x, y, w, h = gl_box()
-        glBindFramebuffer(GL_READ_FRAMEBUFFER, r._main_fb_ms)
-        glBindFramebuffer(GL_DRAW_FRAMEBUFFER, r._main_fb)
-        glBlitFramebuffer(x, y, x + w, y + h, x, y, x + w, y + h, GL_COLOR_BUFFER_BIT, GL_LINEAR)
-        glBlitFramebuffer(x, y, x + w, y + h, x, y, x + w, y + h, GL_DEPTH_BUFFER_BIT, GL_NEAREST)
-        glBindFramebuffer(GL_READ_FRAMEBUFFER, r._main_fb)
-        depth = np.flip(np.frombuffer(glReadPixels(x, y, w, h, GL_DEPTH_COMPONENT, GL_FLOAT), np.float32).reshape(h, w), 0)
-        inf = depth == 1.0  # pyrender's conversion of window depth to camera z, on the box only
-        depth = 2.0 * depth - 1.0
+        if getattr(gl, "single_sample", False):  # nothing to resolve: read the drawn buffers themselves
+            glBindFramebuffer(GL_READ_FRAMEBUFFER, r._main_fb_ms)
+        else:
+            glBindFramebuffer(GL_READ_FRAMEBUFFER, r._main_fb_ms)
+            glBindFramebuffer(GL_DRAW_FRAMEBUFFER, r._main_fb)
+            glBlitFramebuffer(x, y, x + w, y + h, x, y, x + w, y + h, GL_COLOR_BUFFER_BIT, GL_LINEAR)
+            glBlitFramebuffer(x, y, x + w, y + h, x, y, x + w, y + h, GL_DEPTH_BUFFER_BIT, GL_NEAREST)
+            glBindFramebuffer(GL_READ_FRAMEBUFFER, r._main_fb)
+        window = np.frombuffer(glReadPixels(x, y, w, h, GL_DEPTH_COMPONENT, GL_FLOAT), np.float32).reshape(h, w)[::-1]
+        # pyrender's conversion of window depth to camera z (float32 as pyrender's), on the box only
         near, far = scene.main_camera_node.camera.znear, scene.main_camera_node.camera.zfar
-        depth[~inf] = (2.0 * near * far) / (far + near - depth[~inf] * (far - near))
-        depth[inf] = 0.0
-        color = np.flip(np.frombuffer(glReadPixels(x, y, w, h, GL_RGBA, GL_UNSIGNED_BYTE), np.uint8).reshape(h, w, 4), 0)
+        depth = (2.0 * near * far) / (far + near - (2.0 * window - 1.0) * (far - near))
+        np.copyto(depth, 0.0, where=window == 1.0)
+        color = np.frombuffer(glReadPixels(x, y, w, h, GL_RGBA, GL_UNSIGNED_BYTE), np.uint8).reshape(h, w, 4)[::-1].copy()
         return color, depth
 
     r._forward_pass, r._read_main_framebuffer = forward_pass, read
@@ -241,4 +243,5 @@ def make_offscreen(width: int, height: int, msaa: bool = False) -> pyrender.Offs
     _bind_lighting_once_per_frame(gl)
     if not msaa:
         _single_sample(gl)
+        gl.single_sample = True
     return gl

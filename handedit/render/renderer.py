@@ -12,6 +12,7 @@ import os
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")  # before pyrender/OpenGL import: headless
 
 import threading  # noqa: E402
+from collections.abc import Iterator  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -52,6 +53,21 @@ class RenderResult:
     def mask(self) -> np.ndarray:
         """(n,H,W) bool robot silhouette."""
         return self.rgba[..., 3] > 0
+
+
+@dataclass
+class Crop:
+    """One frame's render inside its screen box (``box`` (x, y, w, h); w or h 0: off screen)."""
+
+    box: tuple[int, int, int, int]
+    rgba: np.ndarray  # (h,w,4) uint8
+    depth: np.ndarray  # (h,w) float32
+    arm: np.ndarray | None  # (h,w) bool or None (no arm)
+
+    @property
+    def slices(self) -> tuple[slice, slice]:
+        x, y, w, h = (int(v) for v in self.box)
+        return slice(y, y + h), slice(x, x + w)
 
 
 def _light_pose_gl(direction_cv: np.ndarray) -> np.ndarray:
@@ -122,6 +138,24 @@ def link_corners(points: np.ndarray, link: np.ndarray, n_links: int) -> np.ndarr
             lo, hi = q.min(0), q.max(0)
             out[k] = [[(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[m][2]] for i in (0, 1) for j in (0, 1) for m in (0, 1)]
     return out
+
+
+def out_of_view(camera_from_link: np.ndarray, corners: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """(links,) bool: the link's box lies wholly outside one plane of the view frustum (behind the
+    near plane, or beyond an image edge), so it covers no pixel and need not be drawn. The planes
+    pass through the camera centre, so the test holds for corners behind the camera too. A
+    hand-arm's base and upper arm are mostly behind or beside the head camera: drawing them cost
+    their whole vertex work for no pixel."""
+    c = np.einsum("kij,kpj->kpi", camera_from_link[:, :3, :3], corners) + camera_from_link[:, None, :3, 3]
+    x, y, z = c[..., 0], c[..., 1], c[..., 2]
+    outside = (
+        (z <= Z_NEAR),
+        (intr.fx * x + intr.cx * z < 0),  # u < 0
+        (intr.fx * x + (intr.cx - intr.width) * z > 0),  # u > width
+        (intr.fy * y + intr.cy * z < 0),  # v < 0
+        (intr.fy * y + (intr.cy - intr.height) * z > 0),  # v > height
+    )
+    return np.any([o.all(axis=1) for o in outside], axis=0)
 
 
 NEAR_CLIP = Z_NEAR * 1.001  # crossing points sit just in front of the near plane, where the projection is finite
@@ -229,6 +263,22 @@ class RobotRenderer:
 
     def render(self, qpos: np.ndarray, root_pose: np.ndarray, intrinsics: Intrinsics) -> RenderResult:
         """qpos (n,dof) in ``joint_names`` order; root_pose (n,4,4) camera_from_root_link (OpenCV)."""
+        n = len(np.atleast_2d(qpos))
+        rgba = np.zeros((n, self.height, self.width, 4), np.uint8)
+        depth = np.zeros((n, self.height, self.width), np.float32)
+        boxes = np.zeros((n, 4), np.int64)
+        arm = np.zeros((n, self.height, self.width), bool) if self.arm_links else None
+        for i, crop in enumerate(self.crops(qpos, root_pose, intrinsics)):
+            boxes[i] = crop.box
+            rows, cols = crop.slices
+            rgba[i, rows, cols], depth[i, rows, cols] = crop.rgba, crop.depth
+            if arm is not None:
+                arm[i, rows, cols] = crop.arm
+        return RenderResult(rgba=rgba, depth=depth, boxes=boxes, arm=arm)
+
+    def crops(self, qpos: np.ndarray, root_pose: np.ndarray, intrinsics: Intrinsics) -> Iterator[Crop]:
+        """``render`` one frame at a time, each as its screen box's pixels only: the render stage
+        merges these straight into its frames (full-frame copies per side cost a third of the stage)."""
         if threading.get_ident() != self._thread:
             raise RuntimeError(
                 "RobotRenderer used from a thread other than the one that created it; EGL contexts "
@@ -253,34 +303,35 @@ class RobotRenderer:
             raise ValueError(
                 f"intrinsics are for {intrinsics.width}x{intrinsics.height}, renderer is {self.width}x{self.height}"
             )
+        return self._crops(qpos, root_pose, intrinsics)
+
+    def _crops(self, qpos: np.ndarray, root_pose: np.ndarray, intrinsics: Intrinsics) -> Iterator[Crop]:
         cam = self._camera
         cam.fx, cam.fy, cam.cx, cam.cy = intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy
-
-        rgba = np.zeros((n, self.height, self.width, 4), np.uint8)
-        depth = np.zeros((n, self.height, self.width), np.float32)
-        boxes = np.zeros((n, 4), np.int64)
-        arm = np.zeros((n, self.height, self.width), bool) if self.arm_links else None
-        for i in range(n):
+        for i in range(len(qpos)):
             Ts = self.link_transforms(qpos[i])
-            box = screen_box(self._hull_points, np.stack([root_pose[i] @ Ts[link] for link in self._link_nodes]),
-                             self._hull_link, intrinsics, self._hull_corners)
-            boxes[i] = box
-            if box[2] == 0 or box[3] == 0:
-                continue  # entirely off screen
+            camera_from_link = np.stack([root_pose[i] @ Ts[link] for link in self._link_nodes])
+            box = screen_box(self._hull_points, camera_from_link, self._hull_link, intrinsics, self._hull_corners)
+            if box[2] == 0 or box[3] == 0:  # entirely off screen
+                yield Crop(box, np.zeros((box[3], box[2], 4), np.uint8), np.zeros((box[3], box[2]), np.float32),
+                           np.zeros((box[3], box[2]), bool) if self.arm_links else None)
+                continue
             gl_from_root = CV_TO_GL @ root_pose[i]
-            for link, T in Ts.items():
-                self.scene.set_pose(self._link_nodes[link], gl_from_root @ T)
+            hidden = out_of_view(camera_from_link, self._hull_corners, intrinsics)
+            for (link, node), off in zip(self._link_nodes.items(), hidden):
+                node.mesh.is_visible = not off
+                if not off:
+                    self.scene.set_pose(node, gl_from_root @ Ts[link])
             # Single-sample rendering onto a (0,0,0,0) background with opaque shading: the RGBA
             # read-back already is black/transparent off the robot and alpha 255 on it.
             self._gl.region = box
             c, d = self._gl.render(self.scene, flags=pyrender.RenderFlags.RGBA)
-            x, y, w, h = boxes[i]
-            rgba[i, y:y + h, x:x + w], depth[i, y:y + h, x:x + w] = c, d
-            if arm is not None:  # the part is in the alpha: arm links below 255, then every robot pixel opaque
-                a = rgba[i, y:y + h, x:x + w, 3]
-                arm[i, y:y + h, x:x + w] = (a > 0) & (a < 255)
-                a[a > 0] = 255
-        return RenderResult(rgba=rgba, depth=depth, boxes=boxes, arm=arm)
+            arm = None
+            if self.arm_links:  # the part is in the alpha: arm links below 255, then every robot pixel opaque
+                a = c[..., 3]
+                arm = (a > 0) & (a < 255)
+                np.copyto(a, 255, where=arm)
+            yield Crop(box, c, d, arm)
 
     def close(self) -> None:
         """Free the GL context (from the creating thread)."""

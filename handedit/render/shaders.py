@@ -28,11 +28,10 @@ out vec3 frag_normal;
 
 void main()
 {
-    mat4 W = M * inst_m;
-    vec4 world = W * vec4(position, 1.0);
-    gl_Position = P * V * world;
+    vec4 world = M * (inst_m * vec4(position, 1.0));
+    gl_Position = P * (V * world);
     frag_position = world.xyz;
-    frag_normal = mat3(W) * normal;
+    frag_normal = mat3(M) * (mat3(inst_m) * normal);
 }
 """
 

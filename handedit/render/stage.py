@@ -42,7 +42,7 @@ def render_stage(embodiment_id: str, qpos: np.ndarray, root_pose: np.ndarray, re
     then merged by depth, so the nearer robot occludes the other exactly per pixel.
 
     qpos (n,S,dof), root_pose (n,S,4,4), ready (n,S): sides to render (others UPSTREAM)."""
-    from handedit.render import render_embodiment  # deferred: pyrender/EGL only where rendering happens
+    from handedit.render import embodiment_renderer  # deferred: pyrender/EGL only where rendering happens
     from handedit.reasons import per_frame
 
     n, S = np.asarray(ready).shape
@@ -56,19 +56,18 @@ def render_stage(embodiment_id: str, qpos: np.ndarray, root_pose: np.ndarray, re
         idx = np.flatnonzero(ready[:, k])
         if not idx.size:
             continue
-        out = render_embodiment(embodiment_id, qpos[idx, k], root_pose[idx, k], intr, decimate=cfg.decimate,
-                                materials=cfg.materials, side=side)
+        renderer = embodiment_renderer(embodiment_id, W, H, decimate=cfg.decimate, materials=cfg.materials, side=side)
         visible = np.zeros(len(idx), np.int64)
-        for j, i in enumerate(idx):  # inside the render's box: nothing of this side lies outside it
-            box = out.box(j)
-            d, dd = out.depth[j][box], depth[i][box]
+        for j, (i, crop) in enumerate(zip(idx, renderer.crops(qpos[idx, k], root_pose[idx, k], intr))):
+            box = crop.slices  # nothing of this side lies outside its box
+            d, dd = crop.depth, depth[i][box]
             m = (d > 0) & ((dd <= 0) | (d < dd))  # this side's surface is the nearer one
-            np.copyto(rgba[i][box], out.rgba[j][box], where=m[..., None])
+            np.copyto(rgba[i][box], crop.rgba, where=m[..., None])
             np.copyto(dd, d, where=m)
             np.copyto(side_of[i][box], k + 1, where=m)
-            if out.arm is not None:
-                np.copyto(arm[i][box], out.arm[j][box], where=m)
-            visible[j] = np.count_nonzero(out.rgba[j][box][..., 3])
+            if crop.arm is not None:
+                np.copyto(arm[i][box], crop.arm, where=m)
+            visible[j] = np.count_nonzero(crop.rgba[..., 3])
         hs[idx, k] = np.where(visible >= cfg.min_visible_pixels, Reason.OK, Reason.EMPTY_RENDER)
     method = f"pyrender:egl{'' if cfg.decimate is None else f':decimate={cfg.decimate}'}"
     return RenderStageResult(rgba, depth, side_of, arm, hs, per_frame(hs), method)
