@@ -1,6 +1,6 @@
 """The render stage on a curated store's own joint tracks: ms per frame, both robots, as curation renders them.
 
-    .venv/bin/python bench/render_store.py --store runs/lid94 [--embodiment kuka_sharpa ...] [--repeats 2]
+    .venv/bin/python bench/render_store.py --store runs/lid94 [--embodiment kuka_sharpa ...] [--repeats 2] [--decimate 0.25]
 
 ``bench/render.py`` frames one robot at 640x480 in a fixed view; on real clips a hand-arm's two
 robots are drawn at the working resolution from the head camera, their bases behind it and their
@@ -9,7 +9,8 @@ for every hand-arm at 960x540). This runs ``render.stage.render_stage`` on every
 output (`bench/egodex.py --out DIR` makes such a store) in this process, after one warm-up pass
 that builds the renderers, and prints per clip and embodiment: the warm ms per frame (median of
 ``--repeats``), each side's mean screen box as a share of the frame, and the load average. To
-compare two commits, run it from each checkout on the same store, back to back.
+compare two commits, run it from each checkout on the same store, back to back; ``--decimate``
+times the simplified meshes (``RenderConfig.decimate``).
 """
 
 from __future__ import annotations
@@ -40,12 +41,14 @@ def main() -> None:
     ap.add_argument("--store", required=True, help="an output folder of bench/egodex.py or handedit curate")
     ap.add_argument("--embodiment", action="append", help="default: every embodiment in the store")
     ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--decimate", type=float, default=None, help="RenderConfig.decimate (default: full meshes)")
     args = ap.parse_args()
     path = Path(args.store) / "handedit.zarr"
     if not (path / "zarr.json").exists():
         sys.exit(f"{path} is not a handedit store: run bench/egodex.py --out {args.store} first")
     root = zarr.open_group(str(path), mode="r")
-    print(f"load average {os.getloadavg()[0]:.2f}")
+    cfg = RenderConfig(decimate=args.decimate)
+    print(f"load average {os.getloadavg()[0]:.2f}; decimate {args.decimate}")
     for clip in sorted(root["clips"].group_keys()):
         ing = root[Unit("ingest", clip).path]
         intr = Intrinsics(**ing.attrs["info"]["intrinsics"])
@@ -60,17 +63,17 @@ def main() -> None:
             q, pose, hs, st = ret["qpos"][:], ret["root_pose"][:], ret["hand_status"][:], ret["status"][:]
             ready = gate(st)[:, None] & (hs == Reason.OK)
             n = max(len(q), 1)
-            render_stage(emb, q, pose, ready, sides, intr, RenderConfig())  # builds the renderers
+            render_stage(emb, q, pose, ready, sides, intr, cfg)  # builds the renderers
             times = []
             for _ in range(args.repeats):
                 t = time.perf_counter()
-                render_stage(emb, q, pose, ready, sides, intr, RenderConfig())
+                render_stage(emb, q, pose, ready, sides, intr, cfg)
                 times.append(1000 * (time.perf_counter() - t) / n)
             boxes = []
             for k, side in enumerate(sides):
                 idx = np.flatnonzero(ready[:, k])
                 if idx.size:
-                    b = render_embodiment(emb, q[idx, k], pose[idx, k], intr, side=side).boxes
+                    b = render_embodiment(emb, q[idx, k], pose[idx, k], intr, decimate=args.decimate, side=side).boxes
                     boxes.append(f"{side} {np.mean(b[:, 2] * b[:, 3]) / (intr.width * intr.height):.2f}")
             print(f"  {clip:<34} {emb:<20} {statistics.median(times):7.1f} ms/frame   box share {', '.join(boxes)}")
 

@@ -278,6 +278,22 @@ def test_decimate_mesh_policy(robots_dir):
         decimate_mesh(big, 0.0)
 
 
+def test_decimated_meshes_keep_their_creases():
+    """A dense box simplified keeps flat faces: its vertex normals stay square to the faces,
+    not averaged across the edges (a welded mesh's normals would be ~45 degrees off there)."""
+    import trimesh
+
+    from handedit.render.model import DECIMATE_MIN_FACES, decimate_mesh
+
+    box = trimesh.creation.box((0.04, 0.03, 0.02))
+    while len(box.faces) <= 2 * DECIMATE_MIN_FACES:
+        box = box.subdivide()
+    out = decimate_mesh(box, 0.1)
+    assert len(out.faces) < 0.5 * len(box.faces)
+    square = np.abs(out.vertex_normals).max(axis=1)
+    assert (square > 0.999).all(), f"{(square <= 0.999).sum()} of {len(square)} normals lean across an edge"
+
+
 def test_decimation_without_backend_fails_clearly(robots_dir, monkeypatch):
     import sys
 

@@ -17,7 +17,8 @@ class RenderConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    VERSION: ClassVar[int] = 5  # 3: decimate only simplifies dense meshes, silhouette-checked; 4: stalled passes retried; 5: robot_arm
+    VERSION: ClassVar[int] = 6  # 3: decimate only simplifies dense meshes, silhouette-checked; 4: stalled passes retried; 5: robot_arm;
+    # 6: decimated meshes keep their creases (model.DECIMATE_CREASE_DEG)
     decimate: float | None = Field(None, gt=0.0, le=1.0, description="fraction of faces kept")
     min_visible_pixels: int = Field(20, ge=0, description="fewer robot pixels than this -> EMPTY_RENDER")
     materials: dict[str, tuple[float, float, float, float]] | None = Field(
