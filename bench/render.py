@@ -142,7 +142,8 @@ def profile(r: RobotRenderer, q, poses, intr, frames: int = 5) -> dict[str, floa
     traversal and GL calls; llvmpipe runs vertex shading here, on the calling thread), ``raster``
     (waiting in glFinish for llvmpipe's rasteriser threads), ``readback`` (glReadPixels + depth
     linearisation), then the whole of a depth-only pass (mask = depth > 0) and of the same RGBA
-    render at 320x240. Instruments this renderer instance only (bench use)."""
+    render at 320x240; whole-frame passes with every link drawn, not ``render``'s screen boxes and
+    culled links. Instruments this renderer instance only (bench use)."""
     import pyrender
     from OpenGL.GL import glFinish
 
@@ -162,6 +163,9 @@ def profile(r: RobotRenderer, q, poses, intr, frames: int = 5) -> dict[str, floa
         return out
 
     gl._read_main_framebuffer = timed_read
+    r._gl.region = None  # the whole frame, every link (``render`` leaves its last box and culled links set)
+    for node in r._link_nodes.values():
+        node.mesh.is_visible = True
     try:
         for i in range(frames):
             t0 = time.perf_counter()

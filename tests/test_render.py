@@ -408,9 +408,9 @@ def test_jaka_joint_caps_are_blue_faces_of_its_grey_links(robots_dir, monkeypatc
 @pytest.mark.parametrize("emb_id", ["allegro", "xarm_ability"])
 def test_screen_box_render_equals_the_full_frame(robots_dir, monkeypatch, emb_id):
     """Rendering only the robot's screen box (scissored clear, box read-back) and only the links
-    in view gives the full frame's pixels exactly, with every link drawn; the boxes hold every robot pixel; a robot off screen is not drawn;
-    one the near plane cuts is boxed too (its clipped hull), and so is one whose links cross
-    the near plane beside the camera."""
+    in view gives the pixels of the full frame with every link drawn, exactly; the boxes hold
+    every robot pixel; a robot off screen is not drawn; one the near plane cuts is boxed too
+    (its clipped hull), and so is one whose links cross the near plane beside the camera."""
     import handedit.render.renderer as renderer_mod
     from handedit.render import embodiment_renderer
 

@@ -7,8 +7,9 @@ from ~200 ms to well under 100 ms on llvmpipe without changing the silhouette:
   only when its value changes,
 - opaque meshes drawn front to back (pyrender sorts back to front, defeating early-z),
 - the (fixed) lights bound once per program per frame, not before every primitive,
-- clear, resolve and read back only ``gl.region`` when it is set (the robot's screen box):
-  the full-frame read-back and its depth conversion were a third of a frame's cost,
+- clear and read back only ``gl.region`` when it is set (the robot's screen box), from the
+  drawn buffers themselves when they are single-sample (no resolve blit): the full-frame
+  read-back and its depth conversion were a third of a frame's cost,
 - EGL teardown that does not eglTerminate the process-wide display (which kills other contexts).
 
 ``Scene`` is pyrender's scene with its node sets in insertion order: pyrender keeps nodes in
@@ -176,10 +177,8 @@ def _region_reads(gl: pyrender.OffscreenRenderer) -> None:
         if gl.region is None or not flags & pyrender.RenderFlags.RGBA:
             return full_read(scene, flags)
         x, y, w, h = gl_box()
-        if getattr(gl, "single_sample", False):  # nothing to resolve: read the drawn buffers themselves
-            glBindFramebuffer(GL_READ_FRAMEBUFFER, r._main_fb_ms)
-        else:
-            glBindFramebuffer(GL_READ_FRAMEBUFFER, r._main_fb_ms)
+        glBindFramebuffer(GL_READ_FRAMEBUFFER, r._main_fb_ms)
+        if not getattr(gl, "single_sample", False):  # resolve the samples; single-sample buffers are read as drawn
             glBindFramebuffer(GL_DRAW_FRAMEBUFFER, r._main_fb)
             glBlitFramebuffer(x, y, x + w, y + h, x, y, x + w, y + h, GL_COLOR_BUFFER_BIT, GL_LINEAR)
             glBlitFramebuffer(x, y, x + w, y + h, x, y, x + w, y + h, GL_DEPTH_BUFFER_BIT, GL_NEAREST)
