@@ -46,8 +46,7 @@ class RenderResult:
         """Frame i's box as (rows, columns) slices."""
         if self.boxes is None:
             return slice(None), slice(None)
-        x, y, w, h = (int(v) for v in self.boxes[i])
-        return slice(y, y + h), slice(x, x + w)
+        return box_slices(self.boxes[i])
 
     @property
     def mask(self) -> np.ndarray:
@@ -66,8 +65,13 @@ class Crop:
 
     @property
     def slices(self) -> tuple[slice, slice]:
-        x, y, w, h = (int(v) for v in self.box)
-        return slice(y, y + h), slice(x, x + w)
+        return box_slices(self.box)
+
+
+def box_slices(box) -> tuple[slice, slice]:
+    """An (x, y, w, h) pixel box as (rows, columns) slices."""
+    x, y, w, h = (int(v) for v in box)
+    return slice(y, y + h), slice(x, x + w)
 
 
 def _light_pose_gl(direction_cv: np.ndarray) -> np.ndarray:
