@@ -278,20 +278,90 @@ def test_decimate_mesh_policy(robots_dir):
         decimate_mesh(big, 0.0)
 
 
-def test_decimated_meshes_keep_their_creases():
-    """A dense box simplified keeps flat faces: its vertex normals stay square to the faces,
-    not averaged across the edges (a welded mesh's normals would be ~45 degrees off there)."""
+def test_decimated_meshes_shade_like_their_source():
+    """A dense box split at its creases (as CAD exports are) keeps flat faces when simplified:
+    its vertex normals stay square to the faces, not averaged across the edges. A box without
+    seams is shaded smooth across its edges, and so is its simplification (LEAP's glossy palm
+    went flat black when split)."""
     import trimesh
 
     from handedit.render.model import DECIMATE_MIN_FACES, decimate_mesh
 
-    box = trimesh.creation.box((0.04, 0.03, 0.02))
-    while len(box.faces) <= 2 * DECIMATE_MIN_FACES:
-        box = box.subdivide()
-    out = decimate_mesh(box, 0.1)
-    assert len(out.faces) < 0.5 * len(box.faces)
-    square = np.abs(out.vertex_normals).max(axis=1)
-    assert (square > 0.999).all(), f"{(square <= 0.999).sum()} of {len(square)} normals lean across an edge"
+    welded = trimesh.creation.box((0.04, 0.03, 0.02))
+    while len(welded.faces) <= 2 * DECIMATE_MIN_FACES:
+        welded = welded.subdivide()
+    creased = trimesh.graph.smooth_shade(welded, angle=np.radians(30))
+    assert len(creased.vertices) > len(welded.vertices), "the creased box has seams"
+    for box, flat in ((creased, True), (welded, False)):
+        out = decimate_mesh(box, 0.1)
+        assert len(out.faces) < 0.5 * len(box.faces)
+        square = np.abs(out.vertex_normals).max(axis=1)
+        if flat:
+            assert (square > 0.999).all(), f"{(square <= 0.999).sum()} of {len(square)} normals lean across an edge"
+        else:
+            assert (square < 0.99).sum() >= 8, "the corners' normals lean, as the source's do"
+
+
+def test_silhouette_error_measures_how_far_the_outline_moves():
+    """Against itself a mesh strays 0; a sphere 1 mm larger strays 1 mm (within a grid cell)."""
+    import trimesh
+
+    from handedit.render.model import LOD_SILHOUETTE_PX, silhouette_error
+
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=0.05)
+    cell = 0.1 / (LOD_SILHOUETTE_PX - 1)
+    assert silhouette_error(ball, ball) == 0.0
+    grown = trimesh.creation.icosphere(subdivisions=4, radius=0.051)
+    assert abs(silhouette_error(ball, grown) - 0.001) <= 1.5 * cell
+    moved = ball.copy()
+    moved.apply_translation((0.003, 0.0, 0.0))
+    assert abs(silhouette_error(ball, moved) - 0.003) <= 1.5 * cell
+
+
+def test_levels_of_detail_coarsen_with_distance(robots_dir):
+    """The Ability hand's dense meshes get levels with fewer faces and growing errors; a link is
+    drawn at the coarsest level whose outline moves at most lod_px pixels at its nearest point
+    (full mesh when it reaches the near plane): a close-up draws more faces than the whole hand in
+    view, and both silhouettes stay those of the full meshes."""
+    from handedit.render.renderer import Z_NEAR, lod_levels
+
+    error = np.array([[0.0, 0.001, 0.004], [0.0, 0.002, np.inf]])
+    cube = np.array([[x, y, z] for x in (-0.01, 0.01) for y in (-0.01, 0.01) for z in (-0.01, 0.01)])
+    corners = np.stack([cube, cube])
+    levels = {}
+    for z in (0.05, 0.2, 0.5, 2.0, 0.5 * Z_NEAR):
+        poses = np.tile(np.eye(4), (2, 1, 1))
+        poses[:, 2, 3] = z
+        levels[z] = lod_levels(poses, corners, INTR, error, px=1.0).tolist()
+    # f = 120 px: error * 120 / (z - 0.01) <= 1
+    assert levels == {0.05: [0, 0], 0.2: [1, 0], 0.5: [2, 1], 2.0: [2, 1], 0.5 * Z_NEAR: [0, 0]}, levels
+
+    path = hand_urdf(robots_dir, "ability")
+    full = get_renderer(path, W, H)
+    lod = RobotRenderer(path, W, H, lod_px=1.0)
+    dense = [p for p in lod.model.parts if len(p.faces) > 10000]
+    assert dense and all(p.lods for p in dense)
+    for p in dense:
+        faces = [len(x.faces) for x in (p, *p.lods)]
+        errors = [x.error for x in p.lods]
+        assert faces[-1] < 0.5 * faces[0] and errors == sorted(errors) and errors[-1] > 0
+    q, T = scenario(full)
+    # the same pose seen through a 16x longer lens (a close-up of the hand's middle) and as framed
+    close = Intrinsics(fx=16 * INTR.fx, fy=16 * INTR.fy, cx=W / 2 + 16 * (INTR.cx - W / 2), cy=H / 2 + 16 * (INTR.cy - H / 2),
+                       width=W, height=H)
+    drawn = {}
+    for name, intr in (("close-up", close), ("framed", INTR)):
+        a = full.render(q[None], T[None], intr).mask[0]
+        b = lod.render(q[None], T[None], intr).mask[0]
+        assert a.sum() > 0.1 * W * H and (a & b).sum() / (a | b).sum() >= 0.98, name
+        shown = [n for n in lod.scene.mesh_nodes if n.mesh.is_visible]
+        drawn[name] = {n.name.split("@lod")[0]: int(n.name.split("@lod")[1]) if "@lod" in n.name else 0 for n in shown}
+        if name == "framed":
+            assert sum(len(prim.indices) for n in shown for prim in n.mesh.primitives) < 0.5 * full.n_faces
+    both = drawn["close-up"].keys() & drawn["framed"].keys()
+    assert both and all(drawn["close-up"][k] <= drawn["framed"][k] for k in both), drawn
+    assert any(drawn["close-up"][k] < drawn["framed"][k] for k in both), drawn
+    lod.close()
 
 
 def test_decimation_without_backend_fails_clearly(robots_dir, monkeypatch):

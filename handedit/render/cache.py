@@ -28,21 +28,24 @@ def get_renderer(
     materials_key: tuple | None = None,
     decimate: float | None = None,
     hand_root: str | None = None,
+    lod_px: float | None = None,
 ) -> RobotRenderer:
     """Cached RobotRenderer. ``materials_key`` is a hashable materials mapping: a tuple of
     (link-name regex, (r, g, b, a)) pairs, as ``RobotRenderer(materials=dict(materials_key))``;
-    ``hand_root``: a hand-arm's hand root link (its arm's pixels are tagged, ``RenderResult.arm``)."""
+    ``hand_root``: a hand-arm's hand root link (its arm's pixels are tagged, ``RenderResult.arm``);
+    ``lod_px``: levels of detail within that many pixels (``RobotRenderer``)."""
     from handedit.digests import robot_digest
 
     urdf_path = Path(urdf_path).resolve()
     materials_key = tuple((str(k), tuple(float(c) for c in v)) for k, v in materials_key) if materials_key else None
     key = (os.getpid(), threading.get_ident(), str(urdf_path), robot_digest(urdf_path), int(width), int(height),
-           materials_key, decimate, hand_root)
+           materials_key, decimate, hand_root, lod_px)
     with _LOCK:
         renderer = _CACHE.get(key)
     if renderer is None:
         # Built outside the lock: other threads keep rendering while this one loads meshes.
-        renderer = RobotRenderer(urdf_path, width, height, dict(materials_key) if materials_key else None, decimate, hand_root)
+        renderer = RobotRenderer(urdf_path, width, height, dict(materials_key) if materials_key else None, decimate,
+                                 hand_root, lod_px)
         with _LOCK:
             renderer = _CACHE.setdefault(key, renderer)
     return renderer
@@ -65,6 +68,7 @@ def embodiment_renderer(
     decimate: float | None = None,
     materials: dict | None = None,
     side: str = "right",
+    lod_px: float | None = None,
 ) -> RobotRenderer:
     """This thread's cached renderer of a registered embodiment (hand-arm: the composed URDF;
     ``side="left"``: its mirror image, ``handedit.embodiments.mirror``).
@@ -83,7 +87,7 @@ def embodiment_renderer(
         urdf_path = mirror_urdf(urdf_path)
     merged = {**(materials or {}), **embodiments.render_materials(emb)}
     key = tuple((k, tuple(v)) for k, v in merged.items()) if merged else None
-    return get_renderer(Path(urdf_path), width, height, key, decimate, hand_root)
+    return get_renderer(Path(urdf_path), width, height, key, decimate, hand_root, lod_px)
 
 
 def render_embodiment(
@@ -94,8 +98,9 @@ def render_embodiment(
     decimate: float | None = None,
     materials: dict | None = None,
     side: str = "right",
+    lod_px: float | None = None,
 ) -> RenderResult:
     """Render a registered embodiment: URDF and materials come from ``handedit.embodiments``;
     ``root_pose`` is camera_from_root of the URDF root (hand-arm: the arm base)."""
-    renderer = embodiment_renderer(embodiment_id, intrinsics.width, intrinsics.height, decimate, materials, side)
+    renderer = embodiment_renderer(embodiment_id, intrinsics.width, intrinsics.height, decimate, materials, side, lod_px)
     return renderer.render(qpos, root_pose, intrinsics)

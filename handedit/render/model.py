@@ -3,7 +3,9 @@
 The URDF is parsed once with yourdfpy (its ``actuated_joint_names`` define the project's qpos
 order and it derives mimic joints). Every visual mesh is baked into the frame of the link that
 carries it and merged per (link, material), so a frame costs one pose update per link and a
-handful of draw calls instead of one per mesh file.
+handful of draw calls instead of one per mesh file. With ``lod`` each part also carries coarser
+levels of detail, each with the silhouette error it may cost, and the renderer draws the coarsest
+level a link's distance allows (``renderer.lod_levels``).
 """
 
 from __future__ import annotations
@@ -52,6 +54,17 @@ class LinkPart:
     vertices: np.ndarray  # (v,3) float32
     normals: np.ndarray  # (v,3) float32
     faces: np.ndarray  # (f,3) int32
+    lods: tuple[LodLevel, ...] = ()  # coarser versions, finest first (``build_model(lod=True)``)
+
+
+@dataclass
+class LodLevel:
+    """A simplified version of a part and how far its silhouettes may stray from the part's."""
+
+    vertices: np.ndarray  # (v,3) float32
+    normals: np.ndarray  # (v,3) float32
+    faces: np.ndarray  # (f,3) int32
+    error: float  # metres: largest silhouette displacement (``silhouette_error``) of its meshes
 
 
 @dataclass
@@ -186,8 +199,10 @@ SILHOUETTE_PX = 128
 DECIMATE_CREASE_DEG = 30.0
 """A simplified mesh is welded, so its vertex normals average across every edge: a ring's
 flat face and its cylinder would shade as one blurred surface (flat grey patches on the
-DexHand021's shell, bright blots on the KUKA's rings at 960x540). Its faces meeting at more
-than this angle get their own vertices (``trimesh.graph.smooth_shade``), as CAD exports have."""
+DexHand021's shell, bright blots on the KUKA's rings at 960x540). Where the source mesh has
+seams (CAD exports split their vertices at creases), the simplified mesh's faces meeting at more
+than this angle get their own vertices (``trimesh.graph.smooth_shade``); a source without seams
+is shaded smooth across every edge, and so is its simplification (LEAP's glossy palm)."""
 
 
 def _require_fast_simplification():
@@ -212,7 +227,8 @@ def _welded(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     return out
 
 
-def _silhouettes(vertices: np.ndarray, faces: np.ndarray, lo: np.ndarray, scale: float) -> list[np.ndarray]:
+def _silhouettes(vertices: np.ndarray, faces: np.ndarray, lo: np.ndarray, scale: float,
+                 px: int = SILHOUETTE_PX) -> list[np.ndarray]:
     """Filled orthographic silhouettes along the mesh's x, y and z axes (uint8 masks)."""
     import cv2
 
@@ -220,7 +236,7 @@ def _silhouettes(vertices: np.ndarray, faces: np.ndarray, lo: np.ndarray, scale:
     for drop in range(3):
         keep = [i for i in range(3) if i != drop]
         uv = ((vertices[:, keep] - lo[keep]) * scale * 16).round().astype(np.int32)  # 4 subpixel bits
-        img = np.zeros((SILHOUETTE_PX + 2, SILHOUETTE_PX + 2), np.uint8)
+        img = np.zeros((px + 2, px + 2), np.uint8)
         for tri in uv[faces]:
             cv2.fillConvexPoly(img, tri, 1, shift=4)
         out.append(img)
@@ -247,14 +263,85 @@ def silhouette_iou(a: trimesh.Trimesh, b: trimesh.Trimesh) -> float:
     return _SilhouetteCheck(a).iou(b)
 
 
+LOD_FRACTIONS = (0.25, 0.125, 0.0625)
+"""Face fractions of the coarser levels of detail (``build_model(lod=True)``), each simplified
+from the one before (``lod_meshes``). A hand 0.4 m from a 960x540 head camera is ~100 px across, drawn from
+100k-500k faces: most of its triangles are smaller than a pixel, and drawing them is the render's cost."""
+
+LOD_MIN_FACES = 500
+"""Levels of detail stop at this many faces; meshes at or below ``DECIMATE_MIN_FACES`` get none."""
+
+LOD_SILHOUETTE_PX = 512
+"""Silhouette grid across a mesh's largest extent for ``silhouette_error``: a 124 mm palm's
+cell is 0.24 mm, finer than a pixel at 0.4 m from a 1080p head camera (~0.5 mm)."""
+
+
+class _SilhouetteError:
+    """The three axis-aligned silhouettes of a reference mesh on a ``LOD_SILHOUETTE_PX`` grid and
+    their distance maps, to measure how far another mesh's silhouettes stray from them."""
+
+    def __init__(self, reference: trimesh.Trimesh) -> None:
+        import cv2
+
+        self.lo = np.asarray(reference.bounds[0], float)
+        self.scale = (LOD_SILHOUETTE_PX - 1) / max(float(np.max(reference.extents)), 1e-12)
+        self.ref = _silhouettes(np.asarray(reference.vertices), np.asarray(reference.faces), self.lo, self.scale,
+                                LOD_SILHOUETTE_PX)
+        self.to_ref = [cv2.distanceTransform(1 - s, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) for s in self.ref]
+
+    def error(self, other: trimesh.Trimesh) -> float:
+        """In the mesh's units: the largest distance from a silhouette cell of either mesh to the other's
+        silhouette, over the three views (a symmetric Hausdorff distance of the silhouettes)."""
+        import cv2
+
+        out = 0.0
+        sil = _silhouettes(np.asarray(other.vertices), np.asarray(other.faces), self.lo, self.scale, LOD_SILHOUETTE_PX)
+        for ref, to_ref, s in zip(self.ref, self.to_ref, sil):
+            to_s = cv2.distanceTransform(1 - s, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+            out = max(out, float(to_ref[s > 0].max(initial=0.0)), float(to_s[ref > 0].max(initial=0.0)))
+        return out / self.scale
+
+
+def silhouette_error(a: trimesh.Trimesh, b: trimesh.Trimesh) -> float:
+    """How far (in the meshes' units) ``b``'s three axis-aligned silhouettes stray from ``a``'s.
+    Seen at depth z by a camera of focal length f, ``b`` drawn for ``a`` moves the outline by about
+    f * error / z pixels: the bound ``RobotRenderer`` picks a level of detail by."""
+    return _SilhouetteError(a).error(b)
+
+
+_LODS: dict[tuple, list[tuple[trimesh.Trimesh, float]]] = {}
+
+
+def lod_meshes(mesh: trimesh.Trimesh, fractions: tuple[float, ...] = LOD_FRACTIONS) -> list[tuple[trimesh.Trimesh, float]]:
+    """One (mesh, silhouette error in the mesh's units) per fraction of the mesh's faces, coarser each: the
+    previous level simplified further, or the previous level itself where that saves less than a
+    quarter of its faces. Kept per process by content: a hand's fingers and its mirror image
+    instance the same files."""
+    key = (hash(np.asarray(mesh.vertices).tobytes()), hash(np.asarray(mesh.faces).tobytes()), fractions)
+    if key in _LODS:
+        return _LODS[key]
+    out, prev, err = [], mesh, 0.0
+    check = None
+    for f in fractions:
+        target = f * len(mesh.faces)
+        if len(mesh.faces) > DECIMATE_MIN_FACES and LOD_MIN_FACES <= target < len(prev.faces):
+            simple = decimate_mesh(prev, target / len(prev.faces), min_faces=LOD_MIN_FACES, min_iou=0.0)
+            if len(simple.faces) <= 0.75 * len(prev.faces):
+                check = check or _SilhouetteError(mesh)
+                prev, err = simple, max(err, check.error(simple))
+        out.append((prev, err))
+    _LODS[key] = out
+    return out
+
+
 def decimate_mesh(
     mesh: trimesh.Trimesh,
     fraction: float,
     min_faces: int = DECIMATE_MIN_FACES,
     min_iou: float = DECIMATE_MIN_IOU,
 ) -> trimesh.Trimesh:
-    """Quadric decimation that keeps the silhouette and the creases (``DECIMATE_CREASE_DEG``),
-    or the original mesh when it cannot.
+    """Quadric decimation that keeps the silhouette and the shading (creases where the source
+    has seams: ``DECIMATE_CREASE_DEG``), or the original mesh when it cannot.
 
     Policy: meshes with at most ``min_faces`` faces are returned as is; others are welded and
     simplified to ``max(min_faces, fraction * faces)`` faces (gently; more aggressively where the
@@ -269,6 +356,7 @@ def decimate_mesh(
     if fraction >= 1.0 or n <= min_faces:
         return mesh
     welded = _welded(mesh)
+    seams = len(np.unique(np.asarray(mesh.vertices), axis=0)) < len(mesh.vertices)
     target = max(min_faces, int(round(n * fraction)))
     check = None
     while target < 0.75 * n:
@@ -276,10 +364,12 @@ def decimate_mesh(
         if len(faces) > 1.25 * target:  # the gentle pass stalls on some CAD exports (UR5e: ~95 % of the faces left)
             verts, faces = fs.simplify(welded.vertices, welded.faces, target_count=target, agg=7.0)
         simple = trimesh.Trimesh(verts, faces, process=False)
-        check = check or _SilhouetteCheck(mesh)
-        if len(simple.faces) and check.iou(simple) >= min_iou:
+        if min_iou > 0.0:
+            check = check or _SilhouetteCheck(mesh)
+        if len(simple.faces) and (check is None or check.iou(simple) >= min_iou):
+            simple.update_faces(simple.nondegenerate_faces())  # zero-area faces: no pixel, no normal
             simple.remove_unreferenced_vertices()
-            return trimesh.graph.smooth_shade(simple, angle=np.radians(DECIMATE_CREASE_DEG))
+            return trimesh.graph.smooth_shade(simple, angle=np.radians(DECIMATE_CREASE_DEG)) if seams else simple
         target *= 2
     return mesh
 
@@ -288,15 +378,17 @@ def build_model(
     urdf_path: Path,
     materials: dict[str, Rgba] | None = None,
     decimate: float | None = None,
+    lod: bool = False,
 ) -> RobotModel:
-    """Load the URDF and bake its visual meshes into per-(link, material) parts."""
+    """Load the URDF and bake its visual meshes into per-(link, material) parts; ``lod``: each
+    part also gets its ``LOD_FRACTIONS`` levels of detail (``LinkPart.lods``)."""
     urdf = load_urdf(urdf_path)
     overrides = _compile_overrides(materials)
     caps = [(re.compile(k[: -len(CAPS)]), _final_material("", None, [(re.compile(""), v)]))
             for k, v in (materials or {}).items() if k.endswith(CAPS)]
     scene = urdf.scene
     graph = scene.graph
-    groups: dict[tuple[str, Material], list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
+    groups: dict[tuple[str, Material], list[list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]]] = {}
     simplified: dict[tuple, trimesh.Trimesh] = {}
     for node in graph.nodes_geometry:
         _, geom_name = graph[node]
@@ -313,33 +405,52 @@ def build_model(
                 simplified[key] = decimate_mesh(mesh, decimate)
             mesh = simplified[key]
         R, t = link_from_mesh[:3, :3], link_from_mesh[:3, 3]
-        verts = mesh.vertices @ R.T + t
-        normals = mesh.vertex_normals @ np.linalg.inv(R)  # inverse-transpose: right under scaling
-        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-        # A mirroring transform flips triangle winding; keep faces outward for back-face culling.
-        faces = mesh.faces if np.linalg.det(R) > 0 else mesh.faces[:, ::-1]
         cap = next((m for pattern, m in caps if pattern.fullmatch(link)), None)
-        if cap is not None:
-            on = _cap_faces(urdf, link, verts, faces)
-            if on.any():
-                groups.setdefault((link, cap), []).append((verts, normals, faces[on]))
-                faces = faces[~on]
-        groups.setdefault((link, material), []).append((verts, normals, faces))
+        stretch = float(np.linalg.norm(R, 2))  # the mesh file's units -> metres (its largest scale)
+        versions = [(mesh, 0.0)] + [(m, stretch * err) for m, err in (lod_meshes(mesh) if lod else [])]
+        for level, (m, err) in enumerate(versions):
+            verts, normals, faces = _baked(m, R, t)
+            if cap is not None:
+                on = _cap_faces(urdf, link, verts, faces)
+                if on.any():
+                    _group_level(groups, (link, cap), level, len(versions), (verts, normals, faces[on], err))
+                    faces = faces[~on]
+            _group_level(groups, (link, material), level, len(versions), (verts, normals, faces, err))
     parts = []
-    for (link, material), items in groups.items():
-        offsets = np.cumsum([0] + [len(v) for v, _, _ in items[:-1]])
-        parts.append(
-            LinkPart(
-                link=link,
-                material=material,
-                vertices=np.concatenate([v for v, _, _ in items]).astype(np.float32),
-                normals=np.concatenate([n for _, n, _ in items]).astype(np.float32),
-                faces=np.concatenate([f + o for (_, _, f), o in zip(items, offsets)]).astype(np.int32),
-            )
-        )
+    for (link, material), levels in groups.items():
+        (v, n, f, _), *coarser = (_concatenated(items) for items in levels)
+        parts.append(LinkPart(link=link, material=material, vertices=v, normals=n, faces=f,
+                              lods=tuple(LodLevel(*c) for c in coarser)))
     if not parts:
         raise ValueError(f"{urdf_path}: no visual mesh geometry to render")
     return RobotModel(urdf=urdf, parts=parts)
+
+
+def _baked(mesh: trimesh.Trimesh, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A mesh's vertices, unit normals and faces in its link's frame (``R``, ``t``: link_from_mesh)."""
+    verts = mesh.vertices @ R.T + t
+    normals = mesh.vertex_normals @ np.linalg.inv(R)  # inverse-transpose: right under scaling
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    # A mirroring transform flips triangle winding; keep faces outward for back-face culling.
+    faces = mesh.faces if np.linalg.det(R) > 0 else mesh.faces[:, ::-1]
+    return verts, normals, faces
+
+
+def _group_level(groups: dict, key: tuple, level: int, n_levels: int, item: tuple) -> None:
+    levels = groups.setdefault(key, [[] for _ in range(n_levels)])
+    levels[level].append(item)
+
+
+def _concatenated(items: list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """One part's meshes as one vertex/normal/face array each, and the largest of their errors
+    (none: a level where the part has no faces, e.g. a joint cap the simplifier moved)."""
+    if not items:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), 0.0
+    offsets = np.cumsum([0] + [len(v) for v, _, _, _ in items[:-1]])
+    return (np.concatenate([v for v, _, _, _ in items]).astype(np.float32),
+            np.concatenate([n for _, n, _, _ in items]).astype(np.float32),
+            np.concatenate([f + o for (_, _, f, _), o in zip(items, offsets)]).astype(np.int32),
+            max(e for _, _, _, e in items))
 
 
 def joint_limits(urdf: yourdfpy.URDF) -> tuple[np.ndarray, np.ndarray]:
@@ -358,13 +469,14 @@ def joint_limits(urdf: yourdfpy.URDF) -> tuple[np.ndarray, np.ndarray]:
 
 
 def hull_points(model: RobotModel, links: list[str]) -> tuple[np.ndarray, np.ndarray]:
-    """(link index (m,), link-frame points (m,3)): each part's convex-hull vertices, whose
-    projection bounds the part's (a segment in front of the camera projects to a segment)."""
+    """(link index (m,), link-frame points (m,3)): each part's convex-hull vertices (of all its
+    levels of detail), whose projection bounds the part's (a segment in front of the camera
+    projects to a segment)."""
     from scipy.spatial import ConvexHull, QhullError
 
     index, points = [], []
     for p in model.parts:
-        v = np.asarray(p.vertices, np.float64)
+        v = np.concatenate([np.asarray(x.vertices, np.float64) for x in (p, *p.lods)])
         try:
             v = v[ConvexHull(v).vertices] if len(v) > 64 else v
         except QhullError:  # flat or degenerate: every vertex

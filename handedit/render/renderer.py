@@ -162,6 +162,21 @@ def out_of_view(camera_from_link: np.ndarray, corners: np.ndarray, intr: Intrins
     return np.any([o.all(axis=1) for o in outside], axis=0)
 
 
+def lod_levels(camera_from_link: np.ndarray, corners: np.ndarray, intr: Intrinsics, error: np.ndarray,
+               px: float) -> np.ndarray:
+    """(links,) each link's level of detail: the coarsest whose silhouette error (``error``
+    (links, levels) metres, non-decreasing along a row, 0 first) moves the outline by at most
+    ``px`` pixels where the link comes nearest the camera (f * error / z at its box's nearest
+    corner). A link reaching the near plane gets its full mesh."""
+    c = np.einsum("kij,kpj->kpi", camera_from_link[:, :3, :3], corners) + camera_from_link[:, None, :3, 3]
+    z = c[..., 2].min(axis=1)
+    near = z <= Z_NEAR
+    pixels = error * (max(intr.fx, intr.fy) / np.where(near, 1.0, z))[:, None]
+    fine = (pixels <= px) & ~near[:, None]
+    fine[:, 0] = True
+    return fine.shape[1] - 1 - np.argmax(fine[:, ::-1], axis=1)
+
+
 NEAR_CLIP = Z_NEAR * 1.001  # crossing points sit just in front of the near plane, where the projection is finite
 
 
@@ -189,6 +204,9 @@ class RobotRenderer:
     Links with no match keep their URDF/mesh colours; meshes with none render neutral grey.
     ``decimate``: keep about this fraction of the faces of each dense mesh (quadric decimation;
     small meshes, and meshes whose silhouette would change, stay in full: ``model.decimate_mesh``).
+    ``lod_px``: draw each link at the coarsest level of detail (``model.LOD_FRACTIONS``) whose
+    silhouette error, seen from the link's nearest point, is at most this many pixels
+    (``lod_levels``); None: the full meshes always.
     ``hand_root``: a hand-arm's hand root link; the links outside its subtree are the arm, and
     ``render`` says which pixels show them (``RenderResult.arm``) at no extra pass: their
     material's alpha is ``ARM_ALPHA``, which the shader writes out (meshes are drawn opaque).
@@ -202,11 +220,13 @@ class RobotRenderer:
         materials: dict[str, Rgba] | None = None,
         decimate: float | None = None,
         hand_root: str | None = None,
+        lod_px: float | None = None,
     ) -> None:
         self.urdf_path = Path(urdf_path)
         self.width, self.height = int(width), int(height)
         self.decimate = decimate
-        self.model: RobotModel = build_model(self.urdf_path, materials=materials, decimate=decimate)
+        self.lod_px = lod_px
+        self.model: RobotModel = build_model(self.urdf_path, materials=materials, decimate=decimate, lod=lod_px is not None)
         self.urdf = self.model.urdf
         self.joint_names: list[str] = list(self.urdf.actuated_joint_names)
         self._fk = LinkFK(self.urdf, poly_mimics(self.urdf_path))
@@ -216,25 +236,26 @@ class RobotRenderer:
         # The camera sits at the scene origin; the scene frame *is* the GL camera frame, so lights
         # placed in it stay fixed relative to the camera and robot poses are CV_TO_GL @ root_pose.
         self.scene = Scene(bg_color=(0.0, 0.0, 0.0, 0.0), ambient_light=(AMBIENT,) * 3)
-        self._link_nodes: dict[str, pyrender.Node] = {}
+        self._link_nodes: dict[str, pyrender.Node] = {}  # each link's full mesh
+        self._lod_nodes: dict[str, list[pyrender.Node]] = {}  # each link's levels of detail, full first
+        errors = []
         for link in self.model.links:
-            prims = [
-                pyrender.Primitive(
-                    positions=p.vertices,
-                    normals=p.normals,
-                    indices=p.faces,
-                    material=pyrender.MetallicRoughnessMaterial(
-                        baseColorFactor=(*p.material.rgba[:3], ARM_ALPHA if link in self.arm_links else 1.0),
-                        metallicFactor=p.material.metallic,
-                        roughnessFactor=p.material.roughness,
-                        doubleSided=p.material.double_sided,
-                        alphaMode="OPAQUE",
-                    ),
-                )
-                for p in self.model.parts
-                if p.link == link
-            ]
-            self._link_nodes[link] = self.scene.add(pyrender.Mesh(prims), name=link)
+            parts = [p for p in self.model.parts if p.link == link]
+            nodes, error, n_drawn = [], [], 0
+            for level in range(1 + max(len(p.lods) for p in parts)):
+                arrays = [(p, p if level == 0 else p.lods[level - 1]) for p in parts]
+                faces = sum(len(a.faces) for _, a in arrays)
+                if level and faces > 0.75 * n_drawn:  # saves too little to be worth a level
+                    error.append(np.inf)
+                    continue
+                prims = [self._primitive(link, p.material, a) for p, a in arrays if len(a.faces)]
+                nodes.append(self.scene.add(pyrender.Mesh(prims), name=link if level == 0 else f"{link}@lod{level}"))
+                error.append(max((getattr(a, "error", 0.0) for _, a in arrays), default=0.0))
+                n_drawn = faces
+            self._link_nodes[link], self._lod_nodes[link] = nodes[0], nodes
+            errors.append([e for e in error if np.isfinite(e)])
+        width = max(len(e) for e in errors)
+        self._lod_error = np.array([e + [np.inf] * (width - len(e)) for e in errors])  # (links, levels) metres
         for direction, intensity in LIGHTS_CV:
             light = pyrender.DirectionalLight(color=np.ones(3), intensity=intensity)
             self.scene.add(light, pose=_light_pose_gl(np.array(direction)))
@@ -245,6 +266,20 @@ class RobotRenderer:
         self._gl = make_offscreen(self.width, self.height)
         self._hull_link, self._hull_points = hull_points(self.model, list(self._link_nodes))
         self._hull_corners = link_corners(self._hull_points, self._hull_link, len(self._link_nodes))
+
+    def _primitive(self, link: str, material, arrays) -> pyrender.Primitive:
+        return pyrender.Primitive(
+            positions=arrays.vertices,
+            normals=arrays.normals,
+            indices=arrays.faces,
+            material=pyrender.MetallicRoughnessMaterial(
+                baseColorFactor=(*material.rgba[:3], ARM_ALPHA if link in self.arm_links else 1.0),
+                metallicFactor=material.metallic,
+                roughnessFactor=material.roughness,
+                doubleSided=material.double_sided,
+                alphaMode="OPAQUE",
+            ),
+        )
 
     @property
     def n_faces(self) -> int:
@@ -322,10 +357,13 @@ class RobotRenderer:
                 continue
             gl_from_root = CV_TO_GL @ root_pose[i]
             hidden = out_of_view(camera_from_link, self._hull_corners, intrinsics)
-            for (link, node), off in zip(self._link_nodes.items(), hidden):
-                node.mesh.is_visible = not off
+            levels = (np.zeros(len(hidden), np.int64) if self.lod_px is None
+                      else lod_levels(camera_from_link, self._hull_corners, intrinsics, self._lod_error, self.lod_px))
+            for (link, nodes), off, level in zip(self._lod_nodes.items(), hidden, levels):
+                for j, node in enumerate(nodes):
+                    node.mesh.is_visible = not off and j == level
                 if not off:
-                    self.scene.set_pose(node, gl_from_root @ Ts[link])
+                    self.scene.set_pose(nodes[level], gl_from_root @ Ts[link])
             # Single-sample rendering onto a (0,0,0,0) background with opaque shading: the RGBA
             # read-back already is black/transparent off the robot and alpha 255 on it.
             self._gl.region = box

@@ -13,13 +13,19 @@ from handedit.reasons import Reason
 
 
 class RenderConfig(BaseModel):
-    """Render settings; ``decimate`` trades mesh detail for speed (bench/render.py)."""
+    """Render settings. ``lod_px`` draws each link with no more triangles than its size on screen
+    needs (a hand 0.4 m from the head camera is ~100 px across, its meshes 100k-500k faces);
+    ``decimate`` simplifies every dense mesh whatever its size on screen (bench/render.py)."""
 
     model_config = ConfigDict(extra="forbid")
 
-    VERSION: ClassVar[int] = 6  # 3: decimate only simplifies dense meshes, silhouette-checked; 4: stalled passes retried; 5: robot_arm;
-    # 6: decimated meshes keep their creases (model.DECIMATE_CREASE_DEG)
+    VERSION: ClassVar[int] = 7  # 3: decimate only simplifies dense meshes, silhouette-checked; 4: stalled passes retried; 5: robot_arm;
+    # 6: decimated meshes keep their creases (model.DECIMATE_CREASE_DEG); 7: levels of detail (lod_px), decimated
+    # meshes without seams shade smooth
     decimate: float | None = Field(None, gt=0.0, le=1.0, description="fraction of faces kept")
+    lod_px: float | None = Field(
+        1.0, gt=0.0, description="levels of detail: each link drawn at the coarsest level whose outline moves at most "
+        "this many pixels (RobotRenderer); None: the full meshes always")
     min_visible_pixels: int = Field(20, ge=0, description="fewer robot pixels than this -> EMPTY_RENDER")
     materials: dict[str, tuple[float, float, float, float]] | None = Field(
         None, description="link regex -> display RGBA in [0,1], tried before the roster's colours"
@@ -57,7 +63,8 @@ def render_stage(embodiment_id: str, qpos: np.ndarray, root_pose: np.ndarray, re
         idx = np.flatnonzero(ready[:, k])
         if not idx.size:
             continue
-        renderer = embodiment_renderer(embodiment_id, W, H, decimate=cfg.decimate, materials=cfg.materials, side=side)
+        renderer = embodiment_renderer(embodiment_id, W, H, decimate=cfg.decimate, materials=cfg.materials, side=side,
+                                       lod_px=cfg.lod_px)
         visible = np.zeros(len(idx), np.int64)
         for j, (i, crop) in enumerate(zip(idx, renderer.crops(qpos[idx, k], root_pose[idx, k], intr))):
             box = crop.slices  # nothing of this side lies outside its box
@@ -70,5 +77,6 @@ def render_stage(embodiment_id: str, qpos: np.ndarray, root_pose: np.ndarray, re
                 np.copyto(arm[i][box], crop.arm, where=m)
             visible[j] = np.count_nonzero(crop.rgba[..., 3])
         hs[idx, k] = np.where(visible >= cfg.min_visible_pixels, Reason.OK, Reason.EMPTY_RENDER)
-    method = f"pyrender:egl{'' if cfg.decimate is None else f':decimate={cfg.decimate}'}"
+    method = (f"pyrender:egl{'' if cfg.decimate is None else f':decimate={cfg.decimate}'}"
+              f"{'' if cfg.lod_px is None else f':lod_px={cfg.lod_px}'}")
     return RenderStageResult(rgba, depth, side_of, arm, hs, per_frame(hs), method)
