@@ -303,7 +303,9 @@ def test_decimated_meshes_shade_like_their_source():
 
 
 def test_silhouette_error_measures_how_far_the_outline_moves():
-    """Against itself a mesh strays 0; a sphere 1 mm larger strays 1 mm (within a grid cell)."""
+    """Against itself a mesh strays 0; a sphere 1 mm larger or moved by 3 mm strays that much
+    (rounded up by at most three grid cells: the measure errs wide); a 1 mm detail 30 mm off the
+    sphere that is lost strays 1 mm, its own width, not its distance from the rest."""
     import trimesh
 
     from handedit.render.model import LOD_SILHOUETTE_PX, silhouette_error
@@ -312,10 +314,49 @@ def test_silhouette_error_measures_how_far_the_outline_moves():
     cell = 0.1 / (LOD_SILHOUETTE_PX - 1)
     assert silhouette_error(ball, ball) == 0.0
     grown = trimesh.creation.icosphere(subdivisions=4, radius=0.051)
-    assert abs(silhouette_error(ball, grown) - 0.001) <= 1.5 * cell
+    assert -cell <= silhouette_error(ball, grown) - 0.001 <= 3 * cell
     moved = ball.copy()
     moved.apply_translation((0.003, 0.0, 0.0))
-    assert abs(silhouette_error(ball, moved) - 0.003) <= 1.5 * cell
+    assert -cell <= silhouette_error(ball, moved) - 0.003 <= 3 * cell
+    detail = trimesh.creation.box((0.001, 0.001, 0.001))
+    detail.apply_translation((0.0, 0.0, -0.08))  # 30 mm below the sphere
+    with_detail = trimesh.util.concatenate([ball, detail])
+    cell = 0.13 / (LOD_SILHOUETTE_PX - 1)
+    assert -cell <= silhouette_error(with_detail, ball) - 0.001 <= 3 * cell
+
+
+def test_levels_of_detail_are_cached_by_content(tmp_path, monkeypatch):
+    """A fresh process reads the levels back from the user cache, identical to the built ones;
+    a corrupt cache file is built again and rewritten; another mesh gets its own file."""
+    import trimesh
+
+    from handedit.render import model
+
+    monkeypatch.setenv("HANDEDIT_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(model, "_LODS", {})
+    ball = trimesh.creation.icosphere(subdivisions=5, radius=0.05)
+    built = model.lod_meshes(ball)
+    files = list((tmp_path / "lod").glob("*.npz"))
+    assert len(files) == 1 and len(built) == len(model.LOD_FRACTIONS)
+    assert len(built[-1][0].faces) < 0.2 * len(ball.faces) and built[-1][1] > 0
+
+    def same(a, b):
+        for (ma, ea), (mb, eb) in zip(a, b):
+            assert ea == eb
+            for x, y in ((ma.vertices, mb.vertices), (ma.faces, mb.faces), (ma.vertex_normals, mb.vertex_normals)):
+                np.testing.assert_array_equal(x, y)
+
+    monkeypatch.setattr(model, "_LODS", {})  # a fresh process
+    monkeypatch.setattr(model, "decimate_mesh", lambda *a, **k: pytest.fail("read back, not built"))
+    same(built, model.lod_meshes(ball))
+    monkeypatch.undo()
+    monkeypatch.setenv("HANDEDIT_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(model, "_LODS", {})
+    files[0].write_bytes(files[0].read_bytes()[:100])  # truncated
+    same(built, model.lod_meshes(ball))
+    assert files[0].stat().st_size > 1000, "rewritten whole"
+    model.lod_meshes(trimesh.creation.icosphere(subdivisions=5, radius=0.04))
+    assert len(list((tmp_path / "lod").glob("*.npz"))) == 2
 
 
 def test_levels_of_detail_coarsen_with_distance(robots_dir):

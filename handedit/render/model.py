@@ -10,7 +10,10 @@ level a link's distance allows (``renderer.lod_levels``).
 
 from __future__ import annotations
 
+import hashlib
+import io
 import re
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,7 +21,9 @@ import numpy as np
 import trimesh
 import yourdfpy
 
+from handedit.cache import cache_root
 from handedit.embodiments.roster import CAPS
+from handedit.files import atomic_write
 
 Rgba = tuple[float, float, float, float]
 
@@ -210,8 +215,9 @@ def _require_fast_simplification():
         import fast_simplification
     except ImportError as exc:
         raise ImportError(
-            "decimate= needs quadric mesh simplification from 'fast-simplification', which is not "
-            "installed (pip install fast-simplification); use decimate=None to render the full meshes"
+            "levels of detail (lod_px=) and decimate= need quadric mesh simplification from 'fast-simplification', "
+            "which is not installed (pip install fast-simplification); use lod_px=None and decimate=None to render "
+            "the full meshes"
         ) from exc
     return fast_simplification
 
@@ -228,15 +234,16 @@ def _welded(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
 
 
 def _silhouettes(vertices: np.ndarray, faces: np.ndarray, lo: np.ndarray, scale: float,
-                 px: int = SILHOUETTE_PX) -> list[np.ndarray]:
-    """Filled orthographic silhouettes along the mesh's x, y and z axes (uint8 masks)."""
+                 px: int = SILHOUETTE_PX, margin: int = 0) -> list[np.ndarray]:
+    """Filled orthographic silhouettes along the mesh's x, y and z axes (uint8 masks), ``margin``
+    cells of room on every side for a mesh that reaches past the reference's box."""
     import cv2
 
     out = []
     for drop in range(3):
         keep = [i for i in range(3) if i != drop]
-        uv = ((vertices[:, keep] - lo[keep]) * scale * 16).round().astype(np.int32)  # 4 subpixel bits
-        img = np.zeros((px + 2, px + 2), np.uint8)
+        uv = (((vertices[:, keep] - lo[keep]) * scale + margin) * 16).round().astype(np.int32)  # 4 subpixel bits
+        img = np.zeros((px + 2 + 2 * margin, px + 2 + 2 * margin), np.uint8)
         for tri in uv[faces]:
             cv2.fillConvexPoly(img, tri, 1, shift=4)
         out.append(img)
@@ -263,7 +270,7 @@ def silhouette_iou(a: trimesh.Trimesh, b: trimesh.Trimesh) -> float:
     return _SilhouetteCheck(a).iou(b)
 
 
-LOD_FRACTIONS = (0.25, 0.125, 0.0625)
+LOD_FRACTIONS = (0.5, 0.25, 0.125, 0.0625)
 """Face fractions of the coarser levels of detail (``build_model(lod=True)``), each simplified
 from the one before (``lod_meshes``). A hand 0.4 m from a 960x540 head camera is ~100 px across, drawn from
 100k-500k faces: most of its triangles are smaller than a pixel, and drawing them is the render's cost."""
@@ -275,51 +282,101 @@ LOD_SILHOUETTE_PX = 512
 """Silhouette grid across a mesh's largest extent for ``silhouette_error``: a 124 mm palm's
 cell is 0.24 mm, finer than a pixel at 0.4 m from a 1080p head camera (~0.5 mm)."""
 
+LOD_SILHOUETTE_MARGIN = LOD_SILHOUETTE_PX // 8
+"""Cells of room around the grid: a coarser level may reach past the full mesh's box, and a strip
+cut off at the grid's edge would read as wide as the part left inside."""
+
 
 class _SilhouetteError:
-    """The three axis-aligned silhouettes of a reference mesh on a ``LOD_SILHOUETTE_PX`` grid and
-    their distance maps, to measure how far another mesh's silhouettes stray from them."""
+    """The three axis-aligned silhouettes of a reference mesh on a ``LOD_SILHOUETTE_PX`` grid, to
+    measure how wide a strip of them another mesh changes."""
 
     def __init__(self, reference: trimesh.Trimesh) -> None:
-        import cv2
-
         self.lo = np.asarray(reference.bounds[0], float)
         self.scale = (LOD_SILHOUETTE_PX - 1) / max(float(np.max(reference.extents)), 1e-12)
         self.ref = _silhouettes(np.asarray(reference.vertices), np.asarray(reference.faces), self.lo, self.scale,
-                                LOD_SILHOUETTE_PX)
-        self.to_ref = [cv2.distanceTransform(1 - s, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) for s in self.ref]
+                                LOD_SILHOUETTE_PX, LOD_SILHOUETTE_MARGIN)
 
     def error(self, other: trimesh.Trimesh) -> float:
-        """In the mesh's units: the largest distance from a silhouette cell of either mesh to the other's
-        silhouette, over the three views (a symmetric Hausdorff distance of the silhouettes)."""
+        """In the mesh's units: the width of the widest strip where the two meshes' silhouettes
+        differ, over the three views (twice the largest distance from a differing cell to an
+        agreeing one). An outline moved by d differs in a strip d wide; a lost or added detail in
+        a strip as wide as the detail, however far it sits from the rest (a Hausdorff distance
+        would count that distance: the Inspire palm's engraved letters, 3 mm below it)."""
         import cv2
 
         out = 0.0
-        sil = _silhouettes(np.asarray(other.vertices), np.asarray(other.faces), self.lo, self.scale, LOD_SILHOUETTE_PX)
-        for ref, to_ref, s in zip(self.ref, self.to_ref, sil):
-            to_s = cv2.distanceTransform(1 - s, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-            out = max(out, float(to_ref[s > 0].max(initial=0.0)), float(to_s[ref > 0].max(initial=0.0)))
+        sil = _silhouettes(np.asarray(other.vertices), np.asarray(other.faces), self.lo, self.scale, LOD_SILHOUETTE_PX,
+                           LOD_SILHOUETTE_MARGIN)
+        for ref, s in zip(self.ref, sil):
+            differ = (ref != s).astype(np.uint8)
+            if differ.any():
+                inside = cv2.distanceTransform(differ, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+                out = max(out, 2.0 * float(inside.max()))
         return out / self.scale
 
 
 def silhouette_error(a: trimesh.Trimesh, b: trimesh.Trimesh) -> float:
-    """How far (in the meshes' units) ``b``'s three axis-aligned silhouettes stray from ``a``'s.
-    Seen at depth z by a camera of focal length f, ``b`` drawn for ``a`` moves the outline by about
-    f * error / z pixels: the bound ``RobotRenderer`` picks a level of detail by."""
+    """How far (in the meshes' units) ``b``'s three axis-aligned silhouettes stray from ``a``'s:
+    the widest strip where they differ (``_SilhouetteError``). Seen at depth z by a camera of
+    focal length f, ``b`` drawn for ``a`` changes the outline in a strip about f * error / z pixels
+    wide: the bound ``RobotRenderer`` picks a level of detail by."""
     return _SilhouetteError(a).error(b)
 
 
-_LODS: dict[tuple, list[tuple[trimesh.Trimesh, float]]] = {}
+LOD_CACHE_VERSION = 1
+"""Bumped whenever ``lod_meshes`` would compute other levels from the same mesh."""
+
+_LODS: dict[str, list[tuple[trimesh.Trimesh, float]]] = {}
 
 
 def lod_meshes(mesh: trimesh.Trimesh, fractions: tuple[float, ...] = LOD_FRACTIONS) -> list[tuple[trimesh.Trimesh, float]]:
-    """One (mesh, silhouette error in the mesh's units) per fraction of the mesh's faces, coarser each: the
-    previous level simplified further, or the previous level itself where that saves less than a
-    quarter of its faces. Kept per process by content: a hand's fingers and its mirror image
-    instance the same files."""
-    key = (hash(np.asarray(mesh.vertices).tobytes()), hash(np.asarray(mesh.faces).tobytes()), fractions)
-    if key in _LODS:
-        return _LODS[key]
+    """One (mesh, silhouette error in the mesh's units) per fraction of the mesh's faces, coarser
+    each: the previous level simplified further, or the previous level itself where that saves
+    less than a quarter of its faces. Building them costs seconds for a dense hand (Jaka's
+    DexHand021: ~7 s), so they are kept per process and in the user cache (``lod/``), named by
+    a digest of the mesh and of everything that shapes them: a fresh worker reads them back."""
+    if len(mesh.faces) <= DECIMATE_MIN_FACES:
+        return [(mesh, 0.0)] * len(fractions)
+    key = _lod_key(mesh, fractions)
+    if key not in _LODS:
+        path = cache_root() / "lod" / f"{key}.npz"
+        out = _read_lods(path)
+        if out is None:
+            out = _simplified_levels(mesh, fractions)
+            buf = io.BytesIO()
+            arrays = {f"{name}{i}": a for i, (m, _) in enumerate(out)
+                      for name, a in (("v", m.vertices), ("f", m.faces), ("n", m.vertex_normals))}
+            np.savez(buf, error=np.array([e for _, e in out]), **arrays)
+            atomic_write(path, buf.getvalue())  # concurrent workers write identical bytes
+        _LODS[key] = out
+    return _LODS[key]
+
+
+def _lod_key(mesh: trimesh.Trimesh, fractions: tuple[float, ...]) -> str:
+    fast_simplification = _require_fast_simplification()
+    h = hashlib.sha256()
+    for a in (np.ascontiguousarray(mesh.vertices, np.float64), np.ascontiguousarray(mesh.faces, np.int64)):
+        h.update(a.tobytes())
+    h.update(repr((fractions, LOD_CACHE_VERSION, LOD_MIN_FACES, LOD_SILHOUETTE_PX, LOD_SILHOUETTE_MARGIN,
+                   DECIMATE_MIN_FACES, DECIMATE_CREASE_DEG, fast_simplification.__version__,
+                   trimesh.__version__)).encode())
+    return h.hexdigest()[:32]
+
+
+def _read_lods(path: Path) -> list[tuple[trimesh.Trimesh, float]] | None:
+    """The cached levels, or None when absent or unreadable (they are built again and rewritten)."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return [(trimesh.Trimesh(z[f"v{i}"], z[f"f{i}"], vertex_normals=z[f"n{i}"], process=False), float(e))
+                    for i, e in enumerate(z["error"])]
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile):
+        return None
+
+
+def _simplified_levels(mesh: trimesh.Trimesh, fractions: tuple[float, ...]) -> list[tuple[trimesh.Trimesh, float]]:
     out, prev, err = [], mesh, 0.0
     check = None
     for f in fractions:
@@ -330,7 +387,6 @@ def lod_meshes(mesh: trimesh.Trimesh, fractions: tuple[float, ...] = LOD_FRACTIO
                 check = check or _SilhouetteError(mesh)
                 prev, err = simple, max(err, check.error(simple))
         out.append((prev, err))
-    _LODS[key] = out
     return out
 
 
