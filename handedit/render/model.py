@@ -324,7 +324,7 @@ def silhouette_error(a: trimesh.Trimesh, b: trimesh.Trimesh) -> float:
     return _SilhouetteError(a).error(b)
 
 
-LOD_CACHE_VERSION = 1
+LOD_CACHE_VERSION = 2
 """Bumped whenever ``lod_meshes`` would compute other levels from the same mesh."""
 
 _LODS: dict[str, list[tuple[trimesh.Trimesh, float]]] = {}
@@ -343,12 +343,15 @@ def lod_meshes(mesh: trimesh.Trimesh, fractions: tuple[float, ...] = LOD_FRACTIO
         path = cache_root() / "lod" / f"{key}.npz"
         out = _read_lods(path)
         if out is None:
-            out = _simplified_levels(mesh, fractions)
+            built = _simplified_levels(mesh, fractions)
+            arrays = {"error": np.array([e for _, e in built])}
+            for i, (m, _) in enumerate(built):  # float32, as drawn: a level read back is the level built
+                arrays.update({f"v{i}": np.asarray(m.vertices, np.float32), f"f{i}": np.asarray(m.faces, np.int32),
+                               f"n{i}": np.asarray(m.vertex_normals, np.float32)})
             buf = io.BytesIO()
-            arrays = {f"{name}{i}": a for i, (m, _) in enumerate(out)
-                      for name, a in (("v", m.vertices), ("f", m.faces), ("n", m.vertex_normals))}
-            np.savez(buf, error=np.array([e for _, e in out]), **arrays)
+            np.savez(buf, **arrays)
             atomic_write(path, buf.getvalue())  # concurrent workers write identical bytes
+            out = _levels(arrays)
         _LODS[key] = out
     return _LODS[key]
 
@@ -370,10 +373,14 @@ def _read_lods(path: Path) -> list[tuple[trimesh.Trimesh, float]] | None:
         return None
     try:
         with np.load(path, allow_pickle=False) as z:
-            return [(trimesh.Trimesh(z[f"v{i}"], z[f"f{i}"], vertex_normals=z[f"n{i}"], process=False), float(e))
-                    for i, e in enumerate(z["error"])]
+            return _levels(z)
     except (OSError, ValueError, KeyError, zipfile.BadZipFile):
         return None
+
+
+def _levels(arrays) -> list[tuple[trimesh.Trimesh, float]]:
+    return [(trimesh.Trimesh(arrays[f"v{i}"], arrays[f"f{i}"], vertex_normals=arrays[f"n{i}"], process=False), float(e))
+            for i, e in enumerate(arrays["error"])]
 
 
 def _simplified_levels(mesh: trimesh.Trimesh, fractions: tuple[float, ...]) -> list[tuple[trimesh.Trimesh, float]]:
