@@ -64,12 +64,12 @@ class LinkPart:
 
 @dataclass
 class LodLevel:
-    """A simplified version of a part and how far its silhouettes may stray from the part's."""
+    """A simplified version of a part and how far its outline may stray from the part's."""
 
     vertices: np.ndarray  # (v,3) float32
     normals: np.ndarray  # (v,3) float32
     faces: np.ndarray  # (f,3) int32
-    error: float  # metres: largest silhouette displacement (``silhouette_error``) of its meshes
+    error: float  # metres: the widest strip where its silhouettes differ from the full meshes'
 
 
 @dataclass
