@@ -359,6 +359,42 @@ def test_levels_of_detail_are_cached_by_content(tmp_path, monkeypatch):
     assert len(list((tmp_path / "lod").glob("*.npz"))) == 2
 
 
+def test_a_mesh_and_its_mirror_share_their_levels(tmp_path, monkeypatch):
+    """A left robot's mesh (its right one reflected, as a mirrored URDF loads it) gets the right
+    one's levels reflected, without simplifying again, and the same levels whichever side is
+    asked first."""
+    import trimesh
+
+    from handedit.render import model
+
+    right = trimesh.creation.icosphere(subdivisions=5, radius=0.05)
+    right.vertices[:, 1] += 0.5 * right.vertices[:, 0]  # a shear: the mirror image is another shape
+    left = trimesh.Trimesh(right.vertices * [1, -1, 1], right.faces[:, ::-1], process=False)
+
+    def levels(first, second, cache):
+        monkeypatch.setenv("HANDEDIT_CACHE_DIR", str(tmp_path / cache))
+        monkeypatch.setattr(model, "_LODS", {})
+        a = model.lod_meshes(first)
+        simplify = model.decimate_mesh
+        monkeypatch.setattr(model, "decimate_mesh", lambda *a, **k: pytest.fail("simplified twice"))
+        b = model.lod_meshes(second)
+        monkeypatch.setattr(model, "decimate_mesh", simplify)
+        assert len(list((tmp_path / cache / "lod").glob("*.npz"))) == 1
+        return a, b
+
+    r1, l1 = levels(right, left, "right-first")
+    l2, r2 = levels(left, right, "left-first")
+    for (mr, er), (ml, el) in zip(r1, l1):
+        assert er == el
+        np.testing.assert_array_equal(ml.vertices, mr.vertices * [1, -1, 1])
+        np.testing.assert_array_equal(ml.faces, mr.faces[:, ::-1])
+    for x, y in ((r1, r2), (l1, l2)):
+        for (ma, ea), (mb, eb) in zip(x, y):
+            assert ea == eb
+            np.testing.assert_array_equal(ma.vertices, mb.vertices)
+            np.testing.assert_array_equal(ma.faces, mb.faces)
+
+
 def test_levels_of_detail_coarsen_with_distance(robots_dir):
     """The Ability hand's dense meshes get levels with fewer faces and growing errors; a link is
     drawn at the coarsest level whose outline moves at most lod_px pixels at its nearest point

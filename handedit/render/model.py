@@ -335,31 +335,57 @@ def lod_meshes(mesh: trimesh.Trimesh, fractions: tuple[float, ...] = LOD_FRACTIO
     each: the previous level simplified further, or the previous level itself where that saves
     less than a quarter of its faces. Building them costs seconds for a dense hand (Jaka's
     DexHand021: ~7 s), so they are kept per process and in the user cache (``lod/``), named by
-    a digest of the mesh and of everything that shapes them: a fresh worker reads them back."""
+    a digest of the mesh and of everything that shapes them: a fresh worker reads them back.
+    A mesh and its mirror image (a left robot's, ``embodiments.mirror``) share one set of levels,
+    built for whichever of the two has the smaller digest and reflected for the other: the same
+    levels whichever side is drawn first."""
     if len(mesh.faces) <= DECIMATE_MIN_FACES:
         return [(mesh, 0.0)] * len(fractions)
-    key = _lod_key(mesh, fractions)
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    key = _lod_key(v, f, fractions)
     if key not in _LODS:
-        path = cache_root() / "lod" / f"{key}.npz"
-        out = _read_lods(path)
-        if out is None:
-            built = _simplified_levels(mesh, fractions)
-            arrays = {"error": np.array([e for _, e in built])}
-            for i, (m, _) in enumerate(built):  # float32, as drawn: a level read back is the level built
-                arrays.update({f"v{i}": np.asarray(m.vertices, np.float32), f"f{i}": np.asarray(m.faces, np.int32),
-                               f"n{i}": np.asarray(m.vertex_normals, np.float32)})
-            buf = io.BytesIO()
-            np.savez(buf, **arrays)
-            atomic_write(path, buf.getvalue())  # concurrent workers write identical bytes
-            out = _levels(arrays)
-        _LODS[key] = out
+        twin_key = _lod_key(v * _MIRROR_Y, f[:, ::-1], fractions)
+        if twin_key < key:
+            _LODS[key] = [(_mirrored(m), e) for m, e in _own_lods(_mirrored(mesh), twin_key, fractions)]
+        else:
+            _LODS[key] = _own_lods(mesh, key, fractions)
     return _LODS[key]
 
 
-def _lod_key(mesh: trimesh.Trimesh, fractions: tuple[float, ...]) -> str:
+def _own_lods(mesh: trimesh.Trimesh, key: str, fractions: tuple[float, ...]) -> list[tuple[trimesh.Trimesh, float]]:
+    """``mesh``'s levels from this process, the user cache, or built (and cached) now."""
+    if key in _LODS:
+        return _LODS[key]
+    path = cache_root() / "lod" / f"{key}.npz"
+    out = _read_lods(path)
+    if out is None:
+        built = _simplified_levels(mesh, fractions)
+        arrays = {"error": np.array([e for _, e in built])}
+        for i, (m, _) in enumerate(built):  # float32, as drawn: a level read back is the level built
+            arrays.update({f"v{i}": np.asarray(m.vertices, np.float32), f"f{i}": np.asarray(m.faces, np.int32),
+                           f"n{i}": np.asarray(m.vertex_normals, np.float32)})
+        buf = io.BytesIO()
+        np.savez(buf, **arrays)
+        atomic_write(path, buf.getvalue())  # concurrent workers write identical bytes
+        out = _levels(arrays)
+    _LODS[key] = out
+    return out
+
+
+_MIRROR_Y = np.array([1.0, -1.0, 1.0])
+
+
+def _mirrored(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """``mesh`` reflected across its x-z plane with its faces kept outward, exactly as a mirrored
+    URDF's ``scale="sx -sy sz"`` loads (negation and reversed winding are exact: twice is the mesh)."""
+    return trimesh.Trimesh(np.asarray(mesh.vertices) * _MIRROR_Y, np.asarray(mesh.faces)[:, ::-1],
+                           vertex_normals=np.asarray(mesh.vertex_normals) * _MIRROR_Y, process=False)
+
+
+def _lod_key(vertices: np.ndarray, faces: np.ndarray, fractions: tuple[float, ...]) -> str:
     fast_simplification = _require_fast_simplification()
     h = hashlib.sha256()
-    for a in (np.ascontiguousarray(mesh.vertices, np.float64), np.ascontiguousarray(mesh.faces, np.int64)):
+    for a in (np.ascontiguousarray(vertices, np.float64), np.ascontiguousarray(faces, np.int64)):
         h.update(a.tobytes())
     h.update(repr((fractions, LOD_CACHE_VERSION, LOD_MIN_FACES, LOD_SILHOUETTE_PX, LOD_SILHOUETTE_MARGIN,
                    DECIMATE_MIN_FACES, DECIMATE_CREASE_DEG, fast_simplification.__version__,
