@@ -250,24 +250,44 @@ def _silhouettes(vertices: np.ndarray, faces: np.ndarray, lo: np.ndarray, scale:
     return out
 
 
-class _SilhouetteCheck:
-    """The three axis-aligned silhouettes of a reference mesh, on a grid of ``SILHOUETTE_PX``
-    cells across its largest extent, to compare candidate simplifications with."""
+class _Silhouettes:
+    """The three axis-aligned silhouettes of a reference mesh, on a grid of ``px`` cells across its
+    largest extent with ``margin`` cells of room, to compare other meshes with: the IoU check of
+    ``decimate_mesh`` (``SILHOUETTE_PX``) and the error of a level of detail (``LOD_SILHOUETTE_PX``)."""
 
-    def __init__(self, reference: trimesh.Trimesh) -> None:
+    def __init__(self, reference: trimesh.Trimesh, px: int = SILHOUETTE_PX, margin: int = 0) -> None:
+        self.px, self.margin = px, margin
         self.lo = np.asarray(reference.bounds[0], float)
-        self.scale = (SILHOUETTE_PX - 1) / max(float(np.max(reference.extents)), 1e-12)
-        self.ref = _silhouettes(np.asarray(reference.vertices), np.asarray(reference.faces), self.lo, self.scale)
+        self.scale = (px - 1) / max(float(np.max(reference.extents)), 1e-12)
+        self.ref = self._of(reference)
+
+    def _of(self, mesh: trimesh.Trimesh) -> list[np.ndarray]:
+        return _silhouettes(np.asarray(mesh.vertices), np.asarray(mesh.faces), self.lo, self.scale, self.px, self.margin)
 
     def iou(self, other: trimesh.Trimesh) -> float:
         """Smallest of the three silhouette IoUs of ``other`` against the reference."""
-        sb = _silhouettes(np.asarray(other.vertices), np.asarray(other.faces), self.lo, self.scale)
-        return min(float((x & y).sum() / max((x | y).sum(), 1)) for x, y in zip(self.ref, sb))
+        return min(float((x & y).sum() / max((x | y).sum(), 1)) for x, y in zip(self.ref, self._of(other)))
+
+    def strip_width(self, other: trimesh.Trimesh) -> float:
+        """In the mesh's units: the width of the widest strip where the two meshes' silhouettes
+        differ, over the three views (twice the largest distance from a differing cell to an
+        agreeing one). An outline moved by d differs in a strip d wide; a lost or added detail in
+        a strip as wide as the detail, however far it sits from the rest (a Hausdorff distance
+        would count that distance: the Inspire palm's engraved letters, 3 mm below it)."""
+        import cv2
+
+        out = 0.0
+        for ref, s in zip(self.ref, self._of(other)):
+            differ = (ref != s).astype(np.uint8)
+            if differ.any():
+                inside = cv2.distanceTransform(differ, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+                out = max(out, 2.0 * float(inside.max()))
+        return out / self.scale
 
 
 def silhouette_iou(a: trimesh.Trimesh, b: trimesh.Trimesh) -> float:
     """Smallest IoU of the three axis-aligned silhouettes of ``b`` against those of ``a``."""
-    return _SilhouetteCheck(a).iou(b)
+    return _Silhouettes(a).iou(b)
 
 
 LOD_FRACTIONS = (0.5, 0.25, 0.125, 0.0625)
@@ -287,41 +307,16 @@ LOD_SILHOUETTE_MARGIN = LOD_SILHOUETTE_PX // 8
 cut off at the grid's edge would read as wide as the part left inside."""
 
 
-class _SilhouetteError:
-    """The three axis-aligned silhouettes of a reference mesh on a ``LOD_SILHOUETTE_PX`` grid, to
-    measure how wide a strip of them another mesh changes."""
-
-    def __init__(self, reference: trimesh.Trimesh) -> None:
-        self.lo = np.asarray(reference.bounds[0], float)
-        self.scale = (LOD_SILHOUETTE_PX - 1) / max(float(np.max(reference.extents)), 1e-12)
-        self.ref = _silhouettes(np.asarray(reference.vertices), np.asarray(reference.faces), self.lo, self.scale,
-                                LOD_SILHOUETTE_PX, LOD_SILHOUETTE_MARGIN)
-
-    def error(self, other: trimesh.Trimesh) -> float:
-        """In the mesh's units: the width of the widest strip where the two meshes' silhouettes
-        differ, over the three views (twice the largest distance from a differing cell to an
-        agreeing one). An outline moved by d differs in a strip d wide; a lost or added detail in
-        a strip as wide as the detail, however far it sits from the rest (a Hausdorff distance
-        would count that distance: the Inspire palm's engraved letters, 3 mm below it)."""
-        import cv2
-
-        out = 0.0
-        sil = _silhouettes(np.asarray(other.vertices), np.asarray(other.faces), self.lo, self.scale, LOD_SILHOUETTE_PX,
-                           LOD_SILHOUETTE_MARGIN)
-        for ref, s in zip(self.ref, sil):
-            differ = (ref != s).astype(np.uint8)
-            if differ.any():
-                inside = cv2.distanceTransform(differ, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-                out = max(out, 2.0 * float(inside.max()))
-        return out / self.scale
+def _lod_silhouettes(mesh: trimesh.Trimesh) -> _Silhouettes:
+    return _Silhouettes(mesh, LOD_SILHOUETTE_PX, LOD_SILHOUETTE_MARGIN)
 
 
 def silhouette_error(a: trimesh.Trimesh, b: trimesh.Trimesh) -> float:
     """How far (in the meshes' units) ``b``'s three axis-aligned silhouettes stray from ``a``'s:
-    the widest strip where they differ (``_SilhouetteError``). Seen at depth z by a camera of
+    the widest strip where they differ (``_Silhouettes.strip_width``). Seen at depth z by a camera of
     focal length f, ``b`` drawn for ``a`` changes the outline in a strip about f * error / z pixels
     wide: the bound ``RobotRenderer`` picks a level of detail by."""
-    return _SilhouetteError(a).error(b)
+    return _lod_silhouettes(a).strip_width(b)
 
 
 LOD_CACHE_VERSION = 2
@@ -417,8 +412,8 @@ def _simplified_levels(mesh: trimesh.Trimesh, fractions: tuple[float, ...]) -> l
         if len(mesh.faces) > DECIMATE_MIN_FACES and LOD_MIN_FACES <= target < len(prev.faces):
             simple = decimate_mesh(prev, target / len(prev.faces), min_faces=LOD_MIN_FACES, min_iou=0.0)
             if len(simple.faces) <= 0.75 * len(prev.faces):
-                check = check or _SilhouetteError(mesh)
-                prev, err = simple, max(err, check.error(simple))
+                check = check or _lod_silhouettes(mesh)
+                prev, err = simple, max(err, check.strip_width(simple))
         out.append((prev, err))
     return out
 
@@ -454,7 +449,7 @@ def decimate_mesh(
             verts, faces = fs.simplify(welded.vertices, welded.faces, target_count=target, agg=7.0)
         simple = trimesh.Trimesh(verts, faces, process=False)
         if min_iou > 0.0:
-            check = check or _SilhouetteCheck(mesh)
+            check = check or _Silhouettes(mesh)
         if len(simple.faces) and (check is None or check.iou(simple) >= min_iou):
             simple.update_faces(simple.nondegenerate_faces())  # zero-area faces: no pixel, no normal
             simple.remove_unreferenced_vertices()

@@ -243,17 +243,16 @@ class RobotRenderer:
             parts = [p for p in self.model.parts if p.link == link]
             nodes, error, n_drawn = [], [], 0
             for level in range(1 + max(len(p.lods) for p in parts)):
-                arrays = [(p, p if level == 0 else p.lods[level - 1]) for p in parts]
-                faces = sum(len(a.faces) for _, a in arrays)
+                arrays = [p if level == 0 else p.lods[level - 1] for p in parts]
+                faces = sum(len(a.faces) for a in arrays)
                 if level and faces > 0.75 * n_drawn:  # saves too little to be worth a level
-                    error.append(np.inf)
                     continue
-                prims = [self._primitive(link, p.material, a) for p, a in arrays if len(a.faces)]
+                prims = [self._primitive(link, p.material, a) for p, a in zip(parts, arrays) if len(a.faces)]
                 nodes.append(self.scene.add(pyrender.Mesh(prims), name=link if level == 0 else f"{link}@lod{level}"))
-                error.append(max((getattr(a, "error", 0.0) for _, a in arrays), default=0.0))
+                error.append(0.0 if level == 0 else max(a.error for a in arrays))
                 n_drawn = faces
             self._link_nodes[link], self._lod_nodes[link] = nodes[0], nodes
-            errors.append([e for e in error if np.isfinite(e)])
+            errors.append(error)
         width = max(len(e) for e in errors)
         self._lod_error = np.array([e + [np.inf] * (width - len(e)) for e in errors])  # (links, levels) metres
         for direction, intensity in LIGHTS_CV:
