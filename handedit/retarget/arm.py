@@ -195,14 +195,26 @@ class ArmModel:
         hand = {self._n(l) for l in self.hand_kin.link_names}
         return np.array([l not in hand for l in self.hulls[0]], bool)
 
+    @functools.cached_property
+    def _hull_links(self) -> tuple[ca.Function, list[np.ndarray]]:
+        """Every hull link's base_from_link in one call (stacked side by side) and each link's
+        points: ``link_points`` runs per sampled frame of every surviving candidate, and one FK
+        call plus one mask per link was most of its time."""
+        links, index, points = self.hulls
+        fn = ca.Function("hull_links", [self.kin.q_sym], [ca.horzcat(*[self.kin.fk_expr(l) for l in links])])
+        return fn, [points[index == k] for k in range(len(links))]
+
     def link_points(self, qa: np.ndarray, frame_from_base: np.ndarray) -> list[np.ndarray]:
         """Per link with geometry, its hull points in ``frame_from_base``'s frame at arm joints ``qa``."""
-        links, index, points = self.hulls
-        q = self.full_q(qa)
+        links = self.hulls[0]
+        if not links:
+            return []
+        fn, parts = self._hull_links
+        Ts = np.asarray(fn(self.full_q(qa)), float)
         out = []
-        for k, link in enumerate(links):
-            T = frame_from_base @ self.kin.fk(q, link)
-            out.append(points[index == k] @ T[:3, :3].T + T[:3, 3])
+        for k, pts in enumerate(parts):
+            T = frame_from_base @ Ts[:, 4 * k: 4 * k + 4]
+            out.append(pts @ T[:3, :3].T + T[:3, 3])
         return out
 
     # -- numeric ----------------------------------------------------------------------
