@@ -102,7 +102,7 @@ class BoundedNewton:
             free = ~(((x <= lo) & (g > 0)) | ((x >= hi) & (g < 0)))
             if np.abs(g[free]).max(initial=0.0) <= tol * max(1.0, f):
                 return x, f, True
-            if free.all():  # the usual case: no fancy indexing (a third of an iteration's Python time)
+            if free.all():  # the usual case: no np.ix_ copy (0.45 s of KUKA+Sharpa's 3.3 s of Newton per EgoDex clip)
                 d = -damped_solve(H, g)
             else:
                 d = np.zeros_like(x)

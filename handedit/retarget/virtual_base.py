@@ -424,7 +424,7 @@ def _first_frame(arm: ArmModel, target: np.ndarray, seeds: list, cfg: VirtualBas
         seeds = list(seeds) + [rng.uniform(arm.lo_s, arm.hi_s) for _ in range(cfg.body_seeds)]
     for i, s0 in enumerate(seeds):
         if i == n_base and not any(ok for _, ok, _ in sols):
-            break  # the body seeds choose among feasible branches: with none, the frame is out of reach
+            break  # the body seeds choose among branches that reach the target: here none does
         sol = arm.solve(target, s0, near=hinted and i == 0)
         sol_ok = sol.pos_err_mm <= cfg.pos_tol_mm and sol.rot_err_deg <= cfg.rot_tol_deg
         room = clearance(sol.x) if clearance is not None and sol_ok and cfg.body_radius_m > 0 else float("inf")
