@@ -130,32 +130,6 @@ def test_a_neighbours_settled_branch_is_taken_without_the_seed_search(assets, mo
     assert len(solves) == 1 + len(seeds) + CFG.body_seeds  # the neighbour kept more: search again
 
 
-def test_an_unreachable_first_frame_tries_no_body_seeds(assets, monkeypatch):
-    """The body seeds choose among branches that reach the target: where no seed reaches it
-    (a target 3 m from the base), the frame is out of reach and only the seeds given are solved."""
-    import importlib
-
-    vb = importlib.import_module("handedit.retarget.virtual_base")
-    arm = arm_model(EMB)
-    solves = []
-    solve = type(arm).solve
-
-    def counted(self, *a, **k):
-        solves.append(1)
-        return solve(self, *a, **k)
-
-    monkeypatch.setattr(type(arm), "solve", counted)
-    seeds = [(arm.lo_s + arm.hi_s) / 2, np.zeros(arm.n)]
-    far = np.eye(4)
-    far[:3, 3] = [3.0, 0.0, 0.5]
-    sol, settled = vb._first_frame(arm, far, seeds, CFG, lambda q: 0.13)
-    assert sol.pos_err_mm > CFG.pos_tol_mm and settled is None and len(solves) == len(seeds)
-    targets, Tb = _known_sequence()
-    solves.clear()
-    vb._first_frame(arm, np.linalg.inv(Tb) @ targets[0], seeds, CFG, lambda q: 0.13)
-    assert len(solves) == len(seeds) + CFG.body_seeds  # reachable, too close to the body: every branch is tried
-
-
 def test_one_failed_frame_in_fifty_does_not_discard_a_candidate(assets):
     """critical_tolerance: 1 of 50 critical frames may fail; that frame alone is rejected."""
     targets, Tb = _known_sequence(n=50)

@@ -406,9 +406,7 @@ def _first_frame(arm: ArmModel, target: np.ndarray, seeds: list, cfg: VirtualBas
     its links keep clear of the operator's body by ``body_radius_m`` + 5 cm (or there is no
     body to keep clear of); otherwise every seed is tried and the feasible one with the most
     clearance wins, ``body_seeds`` more random seeds included (an elbow-up branch of a UR-type
-    arm passes the operator's neck) when one of the given seeds reached the target (on EgoDex
-    add_remove_lid 47 of KUKA+Sharpa's 108 first frames reached with none, and their body
-    seeds were most of the search's cold solves); with none feasible, the closest solution.
+    arm passes the operator's neck); with none feasible, the closest solution.
 
     ``hinted``: the first seed is the neighbouring candidate's solution, solved by Newton when
     it converges near it (the bases differ by a few cm: most candidates need no cold IPOPT);
@@ -418,13 +416,10 @@ def _first_frame(arm: ArmModel, target: np.ndarray, seeds: list, cfg: VirtualBas
     when it kept the full clearance or nothing was feasible)."""
     sols = []
     need = cfg.body_radius_m + cfg.link_radius + 0.05
-    n_base = len(seeds)
     if clearance is not None and cfg.body_radius_m > 0 and len(seeds) > 1:  # more branches to choose from
         rng = np.random.default_rng(1)
         seeds = list(seeds) + [rng.uniform(arm.lo_s, arm.hi_s) for _ in range(cfg.body_seeds)]
     for i, s0 in enumerate(seeds):
-        if i == n_base and not any(ok for _, ok, _ in sols):
-            break  # the body seeds choose among branches that reach the target: here none does
         sol = arm.solve(target, s0, near=hinted and i == 0)
         sol_ok = sol.pos_err_mm <= cfg.pos_tol_mm and sol.rot_err_deg <= cfg.rot_tol_deg
         room = clearance(sol.x) if clearance is not None and sol_ok and cfg.body_radius_m > 0 else float("inf")
