@@ -64,6 +64,7 @@ class ChunkRecord:
     attempts: int = 1
     started: str = ""
     seconds: float = 0.0
+    setup_seconds: float = 0.0  # of ``seconds``, building per-process machinery later tasks reuse (handedit.setup_meter)
     extra: dict = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:

@@ -15,6 +15,7 @@ from typing import Callable
 import numpy as np
 import zarr
 
+from handedit import setup_meter
 from handedit.reasons import Reason
 from handedit.secrets import redact
 from handedit.storage import ChunkRecord, Unit, write_chunk
@@ -120,6 +121,7 @@ def execute(job: ChunkJob, body: Callable[..., StageOutput], inputs) -> dict:
     if job.fault:
         raise InjectedFault(f"fault injected into {job.unit.label} chunk {job.chunk}")
     seed_from(job.key)
+    setup_meter.take()  # what this thread built before this chunk is not its setup
     root = open_root(job.store)
     from distributed.metrics import context_meter
 
@@ -133,7 +135,7 @@ def execute(job: ChunkJob, body: Callable[..., StageOutput], inputs) -> dict:
             arrays["hand_status"] = np.asarray(out.hand_status, dtype=np.int16)
         digests = write_chunk(root, job.unit, job.start, arrays)
     return make_record(job, status, digests, out.method, out.details, out.extra, started, time.perf_counter() - t0,
-                       hand_status=out.hand_status, hand_details=out.hand_details)
+                       hand_status=out.hand_status, hand_details=out.hand_details, setup_seconds=setup_meter.take())
 
 
 def make_record(
@@ -149,6 +151,7 @@ def make_record(
     error: str | None = None,
     hand_status: np.ndarray | None = None,
     hand_details: dict[tuple[int, int], str] | None = None,
+    setup_seconds: float = 0.0,
 ) -> dict:
     codes, counts = np.unique(status, return_counts=True)
 
@@ -186,6 +189,7 @@ def make_record(
         attempts=attempt_number(),
         started=started,
         seconds=round(seconds, 4),
+        setup_seconds=round(setup_seconds, 4),
         extra=extra,
     ).to_json()
 

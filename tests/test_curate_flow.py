@@ -64,7 +64,7 @@ def test_every_array_status_and_record(first_run):
             for k, rec in records.items():
                 assert rec.outcome == "ok" and rec.stage == unit.stage and (rec.start, rec.stop) == (k * F, (k + 1) * F)
                 assert rec.key and rec.inputs and rec.code_version and rec.host and rec.started
-                assert rec.attempts >= 1 and rec.seconds > 0
+                assert rec.attempts >= 1 and rec.seconds > 0 and 0 <= rec.setup_seconds <= rec.seconds
                 assert set(rec.outputs) == names, (unit.label, set(rec.outputs) ^ names)
                 assert rec.version >= 1 and isinstance(rec.params, dict)
                 # the record's rejections are exactly the chunk's rejected frames

@@ -56,6 +56,7 @@ from handedit.embodiments.errors import BrokenUrdf, EmbodimentError
 from handedit.cache import cache_root
 from handedit.embodiments.urdf import absolutize_meshes, matrix_to_xyz_rpy, parse_urdf_xml
 from handedit.files import atomic_write
+from handedit.setup_meter import metered
 
 MOUNT_JOINT = "handedit_mount"
 CLASH_PREFIX = "hand_"
@@ -247,6 +248,7 @@ def compose_embodiment(embodiment_id: str) -> ComposedEmbodiment:
 
 
 @functools.lru_cache(maxsize=64)
+@metered
 def _compose_cached(embodiment_id: str, stamp: tuple, _dirs: tuple) -> ComposedEmbodiment:
     from handedit.embodiments.kinematics import get_kinematics
     from handedit.embodiments.roster import KeypointLink, get_embodiment, resolve_arm, resolve_asset

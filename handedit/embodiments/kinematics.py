@@ -23,6 +23,7 @@ import numpy as np
 from handedit.embodiments.errors import BrokenUrdf
 from handedit.embodiments.linkage import poly_mimics
 from handedit.embodiments.urdf import load_urdf
+from handedit.setup_meter import metered
 
 _MOVABLE = ("revolute", "continuous", "prismatic")
 
@@ -188,6 +189,7 @@ def _safe(name: str) -> str:
 
 
 @functools.lru_cache(maxsize=32)
+@metered
 def get_kinematics(urdf_path: str | os.PathLike) -> Kinematics:
     """Per-process cache of ``Kinematics`` by URDF path."""
     return Kinematics(urdf_path)

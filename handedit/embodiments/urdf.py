@@ -16,6 +16,7 @@ import yourdfpy
 from lxml import etree
 
 from handedit.embodiments.errors import BrokenUrdf, MissingMesh, UrdfNotFound
+from handedit.setup_meter import metered
 
 
 def resolve_mesh_filename(fname: str, urdf_path: str | os.PathLike) -> Path:
@@ -70,6 +71,7 @@ def _check_meshes(urdf: yourdfpy.URDF, path: Path) -> None:
 
 
 @functools.lru_cache(maxsize=64)
+@metered
 def _load_cached(path: str, mtime_ns: int, load_meshes: bool) -> yourdfpy.URDF:
     p = Path(path)
     _check_xml(p)

@@ -24,6 +24,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from handedit.digests import file_sha256
+from handedit.setup_meter import metered
 
 
 class OnnxRuntime(BaseModel):
@@ -142,6 +143,7 @@ def load_model(path: str | os.PathLike, contract: Contract, runtime: OnnxRuntime
 
 
 @lru_cache(maxsize=8)
+@metered
 def _load_cached(path: str, mtime_ns: int, size: int, contract: Contract, runtime: OnnxRuntime) -> LoadedModel:
     import onnxruntime as ort
 

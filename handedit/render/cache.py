@@ -16,6 +16,7 @@ import numpy as np
 
 from handedit.camera import Intrinsics
 from handedit.render.renderer import RenderResult, RobotRenderer
+from handedit.setup_meter import building
 
 _CACHE: dict[tuple, RobotRenderer] = {}
 _LOCK = threading.Lock()
@@ -44,8 +45,9 @@ def get_renderer(
         renderer = _CACHE.get(key)
     if renderer is None:
         # Built outside the lock: other threads keep rendering while this one loads meshes.
-        renderer = RobotRenderer(urdf_path, width, height, dict(materials_key) if materials_key else None, decimate,
-                                 hand_root, lod_px)
+        with building():
+            renderer = RobotRenderer(urdf_path, width, height, dict(materials_key) if materials_key else None, decimate,
+                                     hand_root, lod_px)
         with _LOCK:
             renderer = _CACHE.setdefault(key, renderer)
     return renderer

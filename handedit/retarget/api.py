@@ -23,6 +23,7 @@ from handedit.retarget.config import RetargetConfig
 from handedit.retarget.contact import ContactParams, ObjectTrack, push_terms, touch_terms
 from handedit.retarget.palm import keypoint_palm_frame
 from handedit.retarget.solver import Retargeter
+from handedit.setup_meter import metered
 
 
 NEAR_M = 0.05  # a hand keypoint this close to the object's box: the frame gets the contact terms
@@ -51,6 +52,7 @@ def get_retargeter(embodiment_id: str, cfg: RetargetConfig) -> Retargeter:
 
 
 @functools.lru_cache(maxsize=32)
+@metered
 def _build(path: str, embodiment_id: str, cfg: RetargetConfig) -> Retargeter:
     ra = resolve_asset(get_embodiment(embodiment_id))
     return Retargeter(ra.path, ra.asset, cfg)

@@ -30,6 +30,7 @@ from handedit.embodiments.kinematics import Kinematics, get_kinematics
 from handedit.embodiments.roster import asset_dirs, get_embodiment, resolve_asset
 from handedit.keypoints import JOINT_INDEX, WRIST
 from handedit.retarget.newton import BoundedNewton
+from handedit.setup_meter import metered
 
 CM = 100.0
 # A warm frame's projected Newton solution is taken when it converged this close (rad, every
@@ -179,6 +180,7 @@ class ArmModel:
         return self.kin.fk(self.q_fixed, first)[:3, 3]
 
     @functools.cached_property
+    @metered
     def hulls(self) -> tuple[list[str], np.ndarray, np.ndarray]:
         """The robot's visual geometry for its footprint in the image: (links, link index per
         point, link-frame points), each mesh part's convex-hull vertices (loaded on first use)."""
@@ -190,12 +192,14 @@ class ArmModel:
         return links, index, points
 
     @functools.cached_property
+    @metered
     def hull_is_arm(self) -> np.ndarray:
         """Per link of ``hulls``: an arm link (not part of the hand), as the renderer tags them."""
         hand = {self._n(l) for l in self.hand_kin.link_names}
         return np.array([l not in hand for l in self.hulls[0]], bool)
 
     @functools.cached_property
+    @metered
     def _hull_links(self) -> tuple[ca.Function, list[np.ndarray]]:
         """Every hull link's base_from_link in one call (stacked side by side) and each link's
         points: ``link_points`` runs per sampled frame of every surviving candidate, and one FK
@@ -240,7 +244,7 @@ class ArmModel:
         when it stays near ``q0`` (``NEWTON_MAX_STEP``): a third of IPOPT's time on the demo
         and EgoDex clips; every other frame by IPOPT. ``near``: ``q0`` solves a neighbouring
         problem (the next base candidate's first frame): Newton is tried first there too."""
-        q0 = np.clip(q0, self.lo_s, self.hi_s)
+        q0 = np.minimum(np.maximum(q0, self.lo_s), self.hi_s)  # np.clip: 3x the time on these few joints
         p = np.concatenate([target[:3, 3], target[:3, :3].reshape(-1, order="F"),
                             q0 if q_prev is None else q_prev, [0.0 if q_prev is None else smooth]])
         if warm is not None or near:
@@ -261,10 +265,10 @@ class ArmModel:
         return self._solution(target, x, lam, ok)
 
     def _solution(self, target: np.ndarray, x: np.ndarray, lam: np.ndarray, ok: bool) -> IKSolution:
-        x = np.clip(x, self.lo_s, self.hi_s)
+        x = np.minimum(np.maximum(x, self.lo_s), self.hi_s)
         T = self.wrist_pose(x)
         pe = float(np.linalg.norm(T[:3, 3] - target[:3, 3]) * 1000.0)
-        c = np.clip((np.trace(T[:3, :3].T @ target[:3, :3]) - 1) / 2, -1, 1)
+        c = min(max((np.trace(T[:3, :3].T @ target[:3, :3]) - 1) / 2, -1.0), 1.0)
         return IKSolution(self.full_q(x), pe, float(np.degrees(np.arccos(c))), ok, x, lam)
 
     def hand_root_from_wrist(self, hand_q: np.ndarray) -> np.ndarray:
@@ -310,6 +314,7 @@ def arm_source(embodiment_id: str) -> ArmSource:
 
 
 @functools.lru_cache(maxsize=16)
+@metered
 def _build(src_key: tuple) -> ArmModel:
     emb, path, hand_id, names, reach = src_key
     return ArmModel(ArmSource(emb, Path(path), hand_id, dict(names), reach))

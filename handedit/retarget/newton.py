@@ -68,7 +68,10 @@ def damped_solve(H: np.ndarray, g: np.ndarray) -> np.ndarray:
     directly: numpy's cholesky and two solves cost ten times the arithmetic at this size."""
     mu, scale = 0.0, max(1e-8, float(np.abs(np.diag(H)).max(initial=0.0)))
     while mu <= 1e6 * scale:
-        L, info = dpotrf(H + mu * np.eye(len(g)) if mu else H, lower=True, clean=False)
+        if mu:  # H + mu I, bit for bit, without building I (damped_solve damps most of its calls)
+            Hm = H + 0.0
+            Hm.flat[:: len(g) + 1] += mu
+        L, info = dpotrf(Hm if mu else H, lower=True, clean=False)
         if info == 0:
             return dpotrs(L, g, lower=True)[0]
         mu = max(2.0 * mu, 1e-6 * scale)
@@ -93,7 +96,7 @@ class BoundedNewton:
         lo, hi, tol = self.lo, self.hi, self.tol
         fgh, cost = per_thread(self._evaluators, self._fgh), per_thread(self._evaluators, self._f)
         n = len(x0)
-        x = np.clip(x0, lo, hi)
+        x = np.minimum(np.maximum(x0, lo), hi)
         for _ in range(max_iter):
             fv, gv, hv = fgh(x, p)
             f, g, H = float(fv[0]), gv.copy(), hv.reshape(n, n)

@@ -31,6 +31,7 @@ from handedit.keypoints import FINGERTIPS
 from handedit.reasons import STATUS_DTYPE, Reason
 from handedit.retarget.api import RetargetResult, get_retargeter
 from handedit.retarget.config import RetargetConfig
+from handedit.setup_meter import metered
 
 
 class RetargetQCConfig(BaseModel):
@@ -63,6 +64,7 @@ class RetargetQC:
 
 
 @functools.lru_cache(maxsize=16)
+@metered
 def surface_samples(urdf_path: str, n: int) -> dict[str, np.ndarray]:
     """link -> (n,3) points on its visual meshes, in the link frame."""
     urdf = load_urdf(urdf_path, load_meshes=False)
