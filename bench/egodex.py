@@ -235,10 +235,12 @@ COVERAGE_RADII_M = (0.04, 0.03, 0.02)
 HALF_WIDTH_AT_M = (0.06, 0.08, 0.10, 0.12, 0.14)  # along the forearm from the wrist: past the hand, before the elbow leaves
 
 
-def half_widths(mask, wrist, elbow, intr) -> list[float]:
+def half_widths(mask, wrist, elbow, intr) -> list[tuple[float, float]]:
     """The hand-arm mask's half-width across the forearm (m) a few cm up from the wrist: the
     arm's own radius where the mask follows it, so the coverage at a radius above it reads
-    roughly their ratio (a bare forearm of 3 cm cannot fill a 4 cm capsule) rather than a miss."""
+    roughly their ratio (a bare forearm of 3 cm cannot fill a 4 cm capsule) rather than a miss;
+    with each, how far the mask's cross-section centre lies from the annotated forearm's axis
+    (m): an axis beside the visible arm leaves table inside the capsule on one side."""
     import numpy as np
 
     from handedit.camera import project
@@ -255,16 +257,18 @@ def half_widths(mask, wrist, elbow, intr) -> list[float]:
         n = np.array([-ax[1], ax[0]])
         if not (0 <= u0 < w and 0 <= v0 < h) or not mask[int(v0), int(u0)]:
             continue
-        steps = 0
+        reach, edge = [], False
         for sign in (1, -1):  # walk out of the mask on both sides of the axis
             k = 1
             while True:
                 u, v = u0 + sign * k * n[0], v0 + sign * k * n[1]
                 if not (0 <= u < w and 0 <= v < h) or not mask[int(v), int(u)]:
+                    edge |= not (0 <= u < w and 0 <= v < h)
                     break
                 k += 1
-            steps += k - 1
-        out.append(steps / 2 * p[2] / intr.fx)
+            reach.append(k - 1)
+        m_per_px = p[2] / intr.fx  # the offset only where both sides end inside the view
+        out.append((sum(reach) / 2 * m_per_px, float("nan") if edge else abs(reach[0] - reach[1]) / 2 * m_per_px))
     return out
 
 
@@ -308,7 +312,9 @@ def arm_report(root) -> dict:
                     inside[r] += int((handarm[t, k] & cap).sum())
                     total[r] += int(cap.sum())
             out["coverage"][(c, side)] = {r: inside[r] / total[r] if total[r] else float("nan") for r in COVERAGE_RADII_M}
-            out["coverage"][(c, side)]["half_width"] = float(np.median(widths)) if widths else float("nan")
+            out["coverage"][(c, side)]["half_width"] = float(np.median([x[0] for x in widths])) if widths else float("nan")
+            offsets = [x[1] for x in widths if np.isfinite(x[1])]
+            out["coverage"][(c, side)]["axis_offset"] = float(np.median(offsets)) if offsets else float("nan")
         out["residue"][c] = int(sum((root[Unit("restore_background", c, scope=s).path]["status"][:] == Reason.RESIDUE).sum()
                                     for s in ("hand", "hand_arm") if Unit("restore_background", c, scope=s).path in root))
         L = limbs(kp, arm, arm_ok)
@@ -331,10 +337,11 @@ def arm_report(root) -> dict:
 def print_arm_report(rep: dict) -> None:
     radii = "  ".join(f"{100 * r:.0f} cm" for r in COVERAGE_RADII_M)
     print(f"\nforearm coverage (share of the forearm capsule inside the hand-arm mask), per clip and hand, capsule radius {radii};"
-          "\nand the mask's half-width across the forearm, 6-14 cm from the wrist (median, cm):")
+          "\nand the mask's half-width across the forearm, 6-14 cm from the wrist, and how far its centre lies from the "
+          "annotated forearm's axis (medians, cm):")
     for (c, side), v in rep["coverage"].items():
         print(f"  {c:<34} {side:<6} " + "  ".join(f"{v[r]:5.2f}" for r in COVERAGE_RADII_M)
-              + f"   half-width {100 * v['half_width']:4.1f}")
+              + f"   half-width {100 * v['half_width']:4.1f}   axis offset {100 * v['axis_offset']:4.1f}")
     print("\nkept hand-arm frame-sides with > 25 % of the robot outside the arm corridor:")
     for (c, e), (bad, n) in rep["off_arm"].items():
         print(f"  {c:<34} {e:<14} {bad:>4} of {n}")
