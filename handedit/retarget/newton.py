@@ -68,10 +68,11 @@ def damped_solve(H: np.ndarray, g: np.ndarray) -> np.ndarray:
     directly: numpy's cholesky and two solves cost ten times the arithmetic at this size."""
     mu, scale = 0.0, max(1e-8, float(np.abs(np.diag(H)).max(initial=0.0)))
     while mu <= 1e6 * scale:
-        if mu:  # H + mu I, bit for bit, without building I (damped_solve damps most of its calls)
-            Hm = H + 0.0
-            Hm.flat[:: len(g) + 1] += mu
-        L, info = dpotrf(Hm if mu else H, lower=True, clean=False)
+        A = H
+        if mu:  # H + mu I, bit for bit, without building I (most calls are damped at least once)
+            A = H + 0.0
+            A.flat[:: len(g) + 1] += mu
+        L, info = dpotrf(A, lower=True, clean=False)
         if info == 0:
             return dpotrs(L, g, lower=True)[0]
         mu = max(2.0 * mu, 1e-6 * scale)
