@@ -377,7 +377,8 @@ def repeated(args) -> None:
     from handedit.storage import open_store
 
     out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="handedit-egodex-"))
-    argv = [a for a in sys.argv[1:]]
+    out.mkdir(parents=True, exist_ok=True)
+    argv = list(sys.argv[1:])
     for flag in ("--repeats", "--out", "--figure"):  # each run gets its own folder; no figures
         while flag in argv:
             k = argv.index(flag)
