@@ -38,9 +38,9 @@ with one thread per worker stand in for CPU time. Each task's setup (the rendere
 and retargeters a worker builds once per embodiment and keeps: ``ChunkRecord.setup_seconds``)
 is left out of the per-frame costs and printed apart, with the projection as this bench made it
 before (setup paid in every window): at dataset scale a worker builds them once for hundreds of
-thousands of frames; a 32-frame window pays them in full. One process holding the whole roster's
-machinery (24 embodiments at 960x540) builds nothing on a second pass over the clips and takes
-about 5 GB.
+thousands of frames; a 32-frame window pays them in full. One process that retargeted and rendered
+the whole roster (24 embodiments at 960x540) on the shared clips built nothing on a second pass
+and held about 5 GB.
 """
 
 from __future__ import annotations
