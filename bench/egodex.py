@@ -40,7 +40,7 @@ is left out of the per-frame costs and printed apart, with the projection as thi
 before (setup paid in every window): at dataset scale a worker builds them once for hundreds of
 thousands of frames; a 32-frame window pays them in full. One process that retargeted and rendered
 the whole roster (24 embodiments at 960x540) on the shared clips built nothing on a second pass
-and held about 5 GB.
+and held about 5 GB (``bench/setup_cost.py``).
 """
 
 from __future__ import annotations
