@@ -64,20 +64,21 @@ import sys  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/figure.py
 
 
-def timings(root, setup: bool = True) -> dict[tuple[str, str | None], tuple[float, int]]:
-    """(stage, embodiment or None) -> (task seconds, frames) summed over every chunk's
-    provenance record: one pass over the records for every cost below. ``setup=False``: without
-    each task's setup (``ChunkRecord.setup_seconds``, ``handedit.setup_meter``), the machinery a
-    worker builds once per embodiment and keeps for every later clip."""
-    return {k: (secs - (0.0 if setup else built), frames) for k, (secs, frames, built, _) in _records_times(root).items()}
+def timings(recorded: dict, setup: bool = True) -> dict[tuple[str, str | None], tuple[float, int]]:
+    """(stage, embodiment or None) -> (task seconds, frames), from ``record_times``. ``setup=False``:
+    without each task's setup (``ChunkRecord.setup_seconds``, ``handedit.setup_meter``), the
+    machinery a worker builds once per embodiment and keeps for every later clip."""
+    return {k: (secs - (0.0 if setup else built), frames) for k, (secs, frames, built, _) in recorded.items()}
 
 
-def setup_times(root) -> dict[tuple[str, str | None], tuple[float, int]]:
-    """(stage, embodiment or None) -> (setup seconds, tasks that built something)."""
-    return {k: (built, n) for k, (_, _, built, n) in _records_times(root).items() if n}
+def setup_times(recorded: dict) -> dict[tuple[str, str | None], tuple[float, int]]:
+    """(stage, embodiment or None) -> (setup seconds, tasks that built something), from ``record_times``."""
+    return {k: (built, n) for k, (_, _, built, n) in recorded.items() if n}
 
 
-def _records_times(root) -> dict[tuple[str, str | None], tuple[float, int, float, int]]:
+def record_times(root) -> dict[tuple[str, str | None], tuple[float, int, float, int]]:
+    """(stage, embodiment or None) -> (task seconds, frames, setup seconds, tasks that built),
+    summed over every chunk's provenance record: one pass over the records for every cost below."""
     from handedit.storage.ledger import iter_units
     from handedit.storage.provenance import read_records
 
@@ -148,14 +149,15 @@ def roster_costs(root) -> dict:
     from handedit.storage import Unit
 
     n_source = sum(root[Unit("ingest", c).path]["status"].shape[0] for c in root["clips"].group_keys())
-    times, with_setup = timings(root, setup=False), timings(root)
+    recorded = record_times(root)
+    times, with_setup = timings(recorded, setup=False), timings(recorded)
     shared, per = source_costs(times, n_source), embodiment_costs(times)
     stages = [s for s in ("retarget", "render", "composite", "harmonize", "qc") if any(s in v for v in per.values())]
     tracks = {e: get_embodiment(e).track for e in per}
     total = {e: sum(per[e].get(s, 0.0) for s in stages) for e in per}
     whole = {e: sum(v.get(s, 0.0) for s in stages) for e, v in embodiment_costs(with_setup).items()}
     built: dict[str, list[float]] = defaultdict(lambda: [0.0, 0])
-    for (stage, _), (secs, n) in setup_times(root).items():
+    for (stage, _), (secs, n) in setup_times(recorded).items():
         built[stage][0] += secs
         built[stage][1] += n
     return {"shared": shared, "per": per, "stages": stages, "tracks": tracks, "total": total,
@@ -475,7 +477,7 @@ def main() -> None:
     print(f"EgoDex: {len(clips)} clip(s), {n_frames} frames at {w}x{h}, embodiments {embs}, {args.workers} workers, "
           f"wall {wall:.0f} s ({n_frames * len(embs) / wall:.2f} frame-embodiments/s)")
     print("\nms per frame (task wall time; per frame and embodiment from retarget on):")
-    times = timings(root)
+    times = timings(record_times(root))
     for stage, ms in stage_costs(times).items():
         print(f"  {stage:<20} {ms:8.1f}")
     print("\nkept fraction (QC OK with this hand's robot), per clip x embodiment x hand:")

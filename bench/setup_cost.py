@@ -26,8 +26,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def main() -> None:
-    import zarr
-
     from handedit import setup_meter
     from handedit.camera import Intrinsics
     from handedit.embodiments import get_embodiment
@@ -35,15 +33,16 @@ def main() -> None:
     from handedit.render.stage import RenderConfig, render_stage
     from handedit.retarget import RetargetConfig
     from handedit.retarget.sides import retarget_hand_arm_sides, retarget_sides
+    from handedit.storage import StoreError, open_store
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--store", required=True, help="an output folder of bench/egodex.py (--roster for the whole roster)")
     ap.add_argument("--embodiment", action="append", help="default: every embodiment in the store")
     args = ap.parse_args()
-    path = Path(args.store) / "handedit.zarr"
-    if not (path / "zarr.json").exists():
-        sys.exit(f"{path} is not a handedit store: run bench/egodex.py --roster --out {args.store} first")
-    root = zarr.open_group(str(path), mode="r")
+    try:
+        root = open_store(args.store)
+    except StoreError as e:
+        sys.exit(f"bench/setup_cost.py: {e} (bench/egodex.py --roster --out {args.store} makes one)")
     clips = sorted(root["clips"].group_keys())
     embs = args.embodiment or sorted(root[f"clips/{clips[0]}/embodiments"].group_keys())
     inputs = {}

@@ -29,7 +29,7 @@ from handedit.embodiments.errors import AssetsMissing, EmbodimentError
 from handedit.embodiments.kinematics import Kinematics, get_kinematics
 from handedit.embodiments.roster import asset_dirs, get_embodiment, resolve_asset
 from handedit.keypoints import JOINT_INDEX, WRIST
-from handedit.retarget.newton import BoundedNewton
+from handedit.retarget.newton import BoundedNewton, clamp
 from handedit.setup_meter import metered
 
 CM = 100.0
@@ -192,7 +192,6 @@ class ArmModel:
         return links, index, points
 
     @functools.cached_property
-    @metered
     def hull_is_arm(self) -> np.ndarray:
         """Per link of ``hulls``: an arm link (not part of the hand), as the renderer tags them."""
         hand = {self._n(l) for l in self.hand_kin.link_names}
@@ -244,7 +243,7 @@ class ArmModel:
         when it stays near ``q0`` (``NEWTON_MAX_STEP``): a third of IPOPT's time on the demo
         and EgoDex clips; every other frame by IPOPT. ``near``: ``q0`` solves a neighbouring
         problem (the next base candidate's first frame): Newton is tried first there too."""
-        q0 = np.minimum(np.maximum(q0, self.lo_s), self.hi_s)  # np.clip: 3x the time on these few joints
+        q0 = clamp(q0, self.lo_s, self.hi_s)
         p = np.concatenate([target[:3, 3], target[:3, :3].reshape(-1, order="F"),
                             q0 if q_prev is None else q_prev, [0.0 if q_prev is None else smooth]])
         if warm is not None or near:
@@ -265,7 +264,7 @@ class ArmModel:
         return self._solution(target, x, lam, ok)
 
     def _solution(self, target: np.ndarray, x: np.ndarray, lam: np.ndarray, ok: bool) -> IKSolution:
-        x = np.minimum(np.maximum(x, self.lo_s), self.hi_s)
+        x = clamp(x, self.lo_s, self.hi_s)
         T = self.wrist_pose(x)
         pe = float(np.linalg.norm(T[:3, 3] - target[:3, 3]) * 1000.0)
         c = min(max((np.trace(T[:3, :3].T @ target[:3, :3]) - 1) / 2, -1.0), 1.0)

@@ -62,6 +62,12 @@ def per_thread(cache: dict, fn: ca.Function) -> Evaluator:
     return cache[key]
 
 
+def clamp(x: np.ndarray, lo, hi) -> np.ndarray:
+    """``x`` clamped to [lo, hi], as np.clip gives it: np.clip's dispatch costs more than its work
+    on the few joints and segments of the arm's search, where it runs hundreds of thousands of times."""
+    return np.minimum(np.maximum(x, lo), hi)
+
+
 def damped_solve(H: np.ndarray, g: np.ndarray) -> np.ndarray:
     """H^-1 g with H + mu I made positive definite (mu grown from 0 until Cholesky succeeds;
     past 1e6 x the largest diagonal entry, the scaled gradient). LAPACK's potrf/potrs
@@ -97,7 +103,7 @@ class BoundedNewton:
         lo, hi, tol = self.lo, self.hi, self.tol
         fgh, cost = per_thread(self._evaluators, self._fgh), per_thread(self._evaluators, self._f)
         n = len(x0)
-        x = np.minimum(np.maximum(x0, lo), hi)
+        x = clamp(x0, lo, hi)
         for _ in range(max_iter):
             fv, gv, hv = fgh(x, p)
             f, g, H = float(fv[0]), gv.copy(), hv.reshape(n, n)
@@ -113,7 +119,7 @@ class BoundedNewton:
                 d[free] = -damped_solve(H[np.ix_(free, free)], g[free])
             t = 1.0
             while t > 1e-6:
-                xn = np.minimum(np.maximum(x + t * d, lo), hi)  # np.clip's dispatch costs more than its work here
+                xn = clamp(x + t * d, lo, hi)
                 fn = float(cost(xn, p)[0][0])
                 if fn <= f + 1e-4 * float(g @ (xn - x)):
                     break

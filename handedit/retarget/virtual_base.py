@@ -48,6 +48,7 @@ import numpy as np
 from handedit.reasons import STATUS_DTYPE, Reason
 from handedit.retarget.arm import ArmModel, IKSolution, arm_model
 from handedit.retarget.config import VirtualBaseConfig
+from handedit.retarget.newton import clamp
 from handedit.retarget.plausibility import BaseView, footprint_outside, forearm_angle, hand_hidden, silhouette, silhouette_outside
 
 GRID_LATERAL = (-0.10, 0.0, 0.10)
@@ -224,11 +225,6 @@ def refine_grid(T1: np.ndarray, reach: float, outward: np.ndarray) -> list[tuple
     return grid
 
 
-def _unit(x: np.ndarray) -> np.ndarray:
-    """``x`` clamped to [0, 1]: np.clip's dispatch costs more than its work on these few elements."""
-    return np.minimum(np.maximum(x, 0.0), 1.0)
-
-
 def seg_dists(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray) -> np.ndarray:
     """Distances between segments [p1,q1] and [p2,q2], (m,3) each, all pairs at once (the closest
     points' parameters clamped to the segments, degenerate segments as points). The search asks
@@ -239,12 +235,12 @@ def seg_dists(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray) ->
     pa, pe = a < 1e-12, e < 1e-12  # a segment that is a point
     a1, e1 = np.where(pa, 1.0, a), np.where(pe, 1.0, e)
     den = a * e - b * b
-    s = np.where(den > 1e-12, _unit((b * f - c * e) / np.where(den > 1e-12, den, 1.0)), 0.0)
+    s = np.where(den > 1e-12, clamp((b * f - c * e) / np.where(den > 1e-12, den, 1.0), 0.0, 1.0), 0.0)
     t = (b * s + f) / e1
-    s = np.where(t < 0, _unit(-c / a1), np.where(t > 1, _unit((b - c) / a1), s))
-    t = _unit(t)
-    s, t = np.where(pe, _unit(-c / a1), s), np.where(pe, 0.0, t)
-    s, t = np.where(pa, 0.0, s), np.where(pa, np.where(pe, 0.0, _unit(f / e1)), t)
+    s = np.where(t < 0, clamp(-c / a1, 0.0, 1.0), np.where(t > 1, clamp((b - c) / a1, 0.0, 1.0), s))
+    t = clamp(t, 0.0, 1.0)
+    s, t = np.where(pe, clamp(-c / a1, 0.0, 1.0), s), np.where(pe, 0.0, t)
+    s, t = np.where(pa, 0.0, s), np.where(pa, np.where(pe, 0.0, clamp(f / e1, 0.0, 1.0)), t)
     return np.linalg.norm(r + d1 * s[:, None] - d2 * t[:, None], axis=1)
 
 
