@@ -177,6 +177,73 @@ def test_a_candidate_past_its_critical_tolerance_is_not_solved_further(assets):
     np.testing.assert_array_equal(near.arm_q, vb._evaluate(arm, Tb, targets, valid, None, CFG).arm_q)
 
 
+def test_a_wrist_flip_rejects_the_frames_past_it_not_the_base(assets):
+    """A joint that jumps more than max_joint_step between kept frames (a warm start ran into
+    its limit and the restart found the other branch) rejects the frames outside the longest
+    continuous run as DISCONTINUITY; the candidate survives on the rest, ranked below a base
+    that keeps every frame, and is discarded when that run is under min_reachability."""
+    import importlib
+
+    vb = importlib.import_module("handedit.retarget.virtual_base")
+    targets, Tb = _known_sequence(n=20)
+    arm = arm_model(EMB)
+    valid = np.ones(len(targets), bool)
+    track = vb._evaluate(arm, Tb, targets, valid, None, CFG, critical=valid)
+    assert (track.status == Reason.OK).all()
+    entry = (0.0, 0.0, 0.0, Tb)
+    whole = vb._score(0, entry, track, arm, valid, valid, CFG)
+    flipped = vb._Track(track.arm_q.copy(), track.status.copy(), track.pos_err, track.chains)
+    flipped.arm_q[14:, 4] += 2 * np.pi - 0.4  # the wrist roll comes back from its other end at frame 14
+    sc = vb._score(1, entry, flipped, arm, valid, valid, CFG)
+    assert sc.reason == Reason.OK and sc.continuity <= CFG.max_joint_step
+    assert (flipped.status[:14] == Reason.OK).all() and (flipped.status[14:] == Reason.DISCONTINUITY).all()
+    assert sc.reachability == sc.critical_success == 14 / 20
+    assert whole.key() < sc.key()
+    early = vb._Track(track.arm_q.copy(), track.status.copy(), track.pos_err, track.chains)
+    early.arm_q[6:, 4] += 2 * np.pi - 0.4  # the longer run is the later one: frames 0-5 go
+    assert vb._score(2, entry, early, arm, valid, valid, CFG).reason == Reason.OK
+    assert (early.status[:6] == Reason.DISCONTINUITY).all() and (early.status[6:] == Reason.OK).all()
+    short = vb._Track(track.arm_q.copy(), track.status.copy(), track.pos_err, track.chains)
+    short.arm_q[[5, 10, 15], 4] += 1.0  # a jump out and back three times: no run keeps half
+    assert vb._score(3, entry, short, arm, valid, valid, CFG).reason == Reason.DISCONTINUITY
+
+
+def test_a_base_the_dual_arm_check_rechooses_brings_its_own_frame_statuses(assets):
+    """The dual-arm check may give a side a lower-ranked base: that side's frames then fail
+    where the new base fails, not where the first choice did; the hand's own rejections and
+    its QC's stay."""
+    from types import SimpleNamespace
+
+    from handedit.retarget.hand_arm import HandArmResult, merge_hand_qc, with_base
+    from handedit.retarget.sides import SidesResult, _rechoose
+    from handedit.retarget.virtual_base import VirtualBaseResult
+
+    arm, n, OK = arm_model(EMB), 6, Reason.OK
+    frame_status = np.full((2, n), OK, np.int16)
+    frame_status[0, 2:4] = Reason.BODY_COLLISION  # the first choice's failures
+    frame_status[1, 4] = Reason.JOINT_LIMIT  # the second's
+    hand = SimpleNamespace(status=np.array([Reason.FINGERTIP_ERROR, OK, OK, OK, OK, OK], np.int16),
+                           qpos=np.zeros((n, 0)), joint_names=[])
+    qc = SimpleNamespace(status=hand.status.copy(), details={5: "contact lost"})
+    qc.status[5] = Reason.CONTACT_LOSS
+    bases = [SimpleNamespace(camera_from_base=np.eye(4)) for _ in range(2)]
+    vb = VirtualBaseResult(EMB, arm.reach, bases, [0, 1], 0, "auto:top1", int(OK), "", np.eye(4), None, None,
+                           frame_status[0], {}, np.zeros((2, n, arm.n)), frame_status)
+    res = HandArmResult(np.zeros((n, arm.kin.dof), np.float32), np.tile(np.eye(4), (n, 1, 1)), np.zeros(n), np.zeros(n),
+                        *with_base(hand.status, vb, 0), vb, list(arm.kin.joint_names), [], hand)
+    first, details = merge_hand_qc(res, qc)
+    assert list(first) == [Reason.FINGERTIP_ERROR, OK, Reason.BODY_COLLISION, Reason.BODY_COLLISION, OK,
+                           Reason.CONTACT_LOSS]
+    out = SidesResult(res.qpos[:, None].copy(), res.root_pose[:, None].copy(), np.zeros((n, 1)), np.zeros((n, 1)),
+                      first[:, None].copy(), {(i, 0): d for i, d in details.items()}, res.joint_names,
+                      virtual_base={"right": {}})
+    _rechoose(out, 0, "right", 1, res, qc, None, None)
+    assert list(out.hand_status[:, 0]) == [Reason.FINGERTIP_ERROR, OK, OK, OK, Reason.JOINT_LIMIT, Reason.CONTACT_LOSS]
+    assert out.details == {(4, 0): "joint limit with base 1", (5, 0): "contact lost"}
+    assert out.virtual_base["right"] == {"chosen": 1, "selected_by": "dual-arm:1"}
+    assert list(res.status) == list(with_base(hand.status, vb, 0)[0])  # the side's own result is left as it was
+
+
 def test_critical_frames_are_hands_in_view():
     kp = np.zeros((3, 21, 3))
     kp[:, :, 2] = 0.5

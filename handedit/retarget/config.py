@@ -13,7 +13,7 @@ SEARCH_HAND_HIDDEN = 0.25  # composite's MAX_HAND_HIDDEN (0.2) as the search's k
 
 class VirtualBaseConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
-    VERSION: ClassVar[int] = 8  # 3: head-torso keep-out, critical tolerance, refinement grid, plausibility ranking;
+    VERSION: ClassVar[int] = 9  # 3: head-torso keep-out, critical tolerance, refinement grid, plausibility ranking;
     # 4: the footprint is the links' visual hulls, and frames composite would drop as off-arm count against a base;
     # 5: candidates discarded for body collisions alone are a last resort (their frames fail, not the sequence);
     # 6: a candidate's first frame tries Newton from its neighbour's solution before any cold IPOPT;
@@ -21,7 +21,8 @@ class VirtualBaseConfig(BaseModel):
     # check tries the best dual_arm_candidates of each side, not 3; a candidate past its critical tolerance is not
     # solved further (its remaining frames read NO_VALID_BASE); previews are rendered when asked for (``previews``);
     # 8: frames where the robot's own arm would hide its hand (composite's HAND_HIDDEN) count against a base too;
-    # the second grid is searched when the best of the 27 lies off the human arm, not only when none survives
+    # the second grid is searched when the best of the 27 lies off the human arm, not only when none survives;
+    # 9: a wrist flip (a joint step past max_joint_step) rejects the frames outside the longest run, not the base
 
     init_back: float = Field(0.55, description="base distance behind the wrist centre, in L_r")
     init_up: float = Field(0.10, description="base height above the wrist centre, in L_r")

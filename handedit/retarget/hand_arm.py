@@ -145,11 +145,7 @@ def _solve(embodiment_id: str, cfg: RetargetConfig, vb_cfg: VirtualBaseConfig, c
         arm_q = vb.arm_tracks[vb.chosen]
         qpos = arm.assembly_qpos(arm_q, hand.qpos.astype(float), hand.joint_names)
         base = vb.candidates[vb.chosen].camera_from_base
-        st = vb.frame_status[vb.chosen]
-        bad = ok & (st != Reason.OK)
-        status[bad] = st[bad]
-        for i in np.flatnonzero(bad):
-            details[int(i)] = f"{Reason(int(st[i])).name.lower().replace('_', ' ')} with base {vb.chosen}"
+        status, details = with_base(hand.status, vb, vb.chosen)
     if world:
         root = np.einsum("tij,jk->tik", np.linalg.inv(wfc), base)
     else:
@@ -158,6 +154,17 @@ def _solve(embodiment_id: str, cfg: RetargetConfig, vb_cfg: VirtualBaseConfig, c
     qpos = np.clip(qpos, np.where(np.isfinite(lo), lo, -np.inf), np.where(np.isfinite(hi), hi, np.inf))
     return HandArmResult(qpos.astype(np.float32), root, hand.fingertip_error_mm, hand.wrist_error_mm, status, details,
                          vb, list(names), notes, hand)
+
+
+def with_base(hand_status: np.ndarray, vb: VirtualBaseResult, chosen: int) -> tuple[np.ndarray, dict[int, str]]:
+    """A sequence's status with base ``chosen``: the hand's own rejections, then the frames
+    where that base fails (with a detail naming it)."""
+    status = np.asarray(hand_status, STATUS_DTYPE).copy()
+    st = vb.frame_status[chosen]
+    bad = (status == Reason.OK) & (st != Reason.OK)
+    status[bad] = st[bad]
+    return status, {int(i): f"{Reason(int(st[i])).name.lower().replace('_', ' ')} with base {chosen}"
+                    for i in np.flatnonzero(bad)}
 
 
 def merge_hand_qc(res: HandArmResult, qc) -> tuple[np.ndarray, dict[int, str]]:

@@ -45,6 +45,7 @@ class SidesResult:
     notes: list[str] = field(default_factory=list)
     virtual_base: dict[str, dict] = field(default_factory=dict)  # side -> sequence-level summary (hand-arm)
     arm_results: dict[int, object] = field(default_factory=dict)  # side index -> HandArmResult (previews)
+    hand_qc: dict[int, object] = field(default_factory=dict)  # side index -> the hand's QC (a re-chosen base re-merges it)
 
 
 def _mirror_mesh(mesh):
@@ -144,6 +145,7 @@ def retarget_hand_arm_sides(keypoints: np.ndarray, keypoints_valid: np.ndarray, 
         out.details.update({(i, k): d for i, d in details.items()})
         out.virtual_base[side] = res.summary()
         out.arm_results[k] = res
+        out.hand_qc[k] = qc
     if S > 1 and len(out.arm_results) > 1:
         _dual_arm(out, sides, embodiment_id, cfg, world_from_camera, world)
     else:
@@ -210,7 +212,7 @@ def _dual_arm(out: SidesResult, sides, embodiment_id: str, cfg: RetargetConfig, 
     i, j = best
     for k, cand in ((0, i), (1, j)):
         if cand != vbs[k].chosen:  # a lower-ranked base avoids the other arm: re-solve that side with it
-            _rechoose(out, k, sides[k], cand, res[k], wfc, world)
+            _rechoose(out, k, sides[k], cand, res[k], out.hand_qc[k], wfc, world)
     if hit.any():
         for t in np.flatnonzero(hit):
             for k in (0, 1):
@@ -225,10 +227,13 @@ def _dual_arm(out: SidesResult, sides, embodiment_id: str, cfg: RetargetConfig, 
         out.virtual_base[side]["dual_arm_pair"] = [int(i), int(j)]
 
 
-def _rechoose(out: SidesResult, k: int, side: str, cand: int, res, wfc, world) -> None:
-    """Side k takes candidate ``cand`` (dual-arm choice): its arm joints and base change."""
+def _rechoose(out: SidesResult, k: int, side: str, cand: int, res, qc, wfc, world) -> None:
+    """Side k takes candidate ``cand`` (dual-arm choice): its arm joints, base and frame
+    statuses change (the first choice's failed frames are not this base's)."""
+    from dataclasses import replace
+
     from handedit.retarget.arm import arm_model
-    from handedit.retarget.hand_arm import known_world
+    from handedit.retarget.hand_arm import known_world, merge_hand_qc, with_base
 
     vb = res.virtual_base
     arm = arm_model(vb.embodiment_id)
@@ -238,10 +243,12 @@ def _rechoose(out: SidesResult, k: int, side: str, cand: int, res, wfc, world) -
     root = np.einsum("tij,jk->tik", np.linalg.inv(w), base) if known_world(world, w) else np.tile(base, (len(q), 1, 1))
     out.qpos[:, k] = q
     out.root_pose[:, k] = left_pose(root) if side == "left" else root
-    st = vb.frame_status[cand]
-    was_ok = out.hand_status[:, k] == Reason.OK
-    bad = was_ok & (st != Reason.OK)
-    out.hand_status[bad, k] = st[bad]
+    base_status, base_details = with_base(res.hand.status, vb, cand)
+    status, details = merge_hand_qc(replace(res, status=base_status, details=base_details), qc)
+    out.hand_status[:, k] = np.where(out.hand_status[:, k] == Reason.ABSENT, Reason.ABSENT, status)
+    for key in [key for key in out.details if key[1] == k]:
+        del out.details[key]
+    out.details.update({(i, k): d for i, d in details.items()})
     out.virtual_base[side]["chosen"] = int(cand)
     out.virtual_base[side]["selected_by"] = f"dual-arm:{cand}"
 

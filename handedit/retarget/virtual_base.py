@@ -19,10 +19,11 @@ whole sequence:
   more than ``critical_tolerance`` of its critical frames fail (the paper does not say which
   frames are critical; the caller passes the frames where the hand is in view: see
   ``hand_arm.critical_frames``; the frames after the one that decides it are not solved),
-  when it keeps less than ``min_reachability`` of the sequence or when its kept frames jump;
-  failed frames of a kept candidate are rejected alone; a body collision never fails a
-  critical frame, and a candidate discarded for body collisions alone is a base of last
-  resort (``_last_resort``) when no other survives;
+  or when it keeps less than ``min_reachability`` of the sequence; failed frames of a kept
+  candidate are rejected alone; a body collision never fails a critical frame, nor does a
+  frame past a wrist flip (kept frames that jump: ``_split_flips`` keeps the longest run),
+  and a candidate discarded for body collisions alone is a base of last resort
+  (``_last_resort``) when no other survives;
 * when none of the 27 survives, or the best survivor lies off the human arm or crosses its
   forearm (``_why_refine``), a second grid is centred where the arm's first joint sits
   ``refine_reach_frac`` L_r from the wrist targets (``reach_centre``: a long arm beside the
@@ -439,6 +440,7 @@ def _first_frame(arm: ArmModel, target: np.ndarray, seeds: list, cfg: VirtualBas
 def _score(idx: int, grid_entry, track: _Track, arm: ArmModel, valid: np.ndarray, critical: np.ndarray,
            cfg: VirtualBaseConfig) -> CandidateScore:
     lat, fwd, yaw, Tb = grid_entry[:4]
+    _split_flips(track, cfg.max_joint_step)
     st = track.status
     ok = st == Reason.OK
     solved = st != Reason.NO_VALID_BASE  # frames after ``track.stopped`` were not
@@ -449,13 +451,12 @@ def _score(idx: int, grid_entry, track: _Track, arm: ArmModel, valid: np.ndarray
     q = track.arm_q[ok]
     rng_ = arm.hi_s - arm.lo_s
     margin = float(np.min(np.minimum(q - arm.lo_s, arm.hi_s - q) / rng_)) if len(q) else 0.0
-    kept = np.flatnonzero(ok)  # steps between frames that are kept (a rejected frame's pose is never shown)
-    steps = np.abs(np.diff(track.arm_q[kept], axis=0)).max(axis=1) if len(kept) > 1 else np.zeros(0)
-    cont = float(steps.max()) if steps.size else 0.0
+    cont = _max_step(track.arm_q, ok)
     reason, detail, last_resort = Reason.OK, "", False
-    # a body collision is the operator's keep-out, not the robot's limit: that frame alone is rejected
+    # a body collision is the operator's keep-out, not the robot's limit: that frame alone is rejected;
+    # so is a frame past a wrist flip (``_split_flips``: the arm follows it, on another branch)
     body = st == Reason.BODY_COLLISION
-    bad_crit = crit & ~ok & ~body & solved
+    bad_crit = crit & ~ok & ~body & (st != Reason.DISCONTINUITY) & solved
     allowed = _allowed_failures(crit, cfg)
     if bad_crit.sum() > allowed:
         r = Reason(int(np.bincount(st[bad_crit]).argmax()))  # the commonest frame-level cause names the rejection
@@ -469,12 +470,33 @@ def _score(idx: int, grid_entry, track: _Track, arm: ArmModel, valid: np.ndarray
         detail = f"keeps {int(ok.sum())} of {int(valid.sum())} frames ({_name(r)} in most of the others)"
         # the robot itself follows enough of the sequence, only the operator's body is in the way: a base of last resort
         robot_fail = valid & ~ok & ~body
-        last_resort = bool(ok.any() and robot_fail.sum() <= (1.0 - cfg.min_reachability) * valid.sum()
-                           and cont <= cfg.max_joint_step)
-    elif cont > cfg.max_joint_step:
-        reason, detail = Reason.DISCONTINUITY, f"joint step {cont:.2f} rad > {cfg.max_joint_step}"
+        last_resort = bool(ok.any() and robot_fail.sum() <= (1.0 - cfg.min_reachability) * valid.sum())
     return CandidateScore(idx, lat, fwd, yaw, Tb, int(reason), detail, crit_succ, reach, ee, margin, cont,
                           down=grid_entry[4] if len(grid_entry) > 4 else 0.0, last_resort=last_resort)
+
+
+def _max_step(arm_q: np.ndarray, ok: np.ndarray) -> float:
+    """Largest joint change (rad) between consecutive kept frames (a rejected frame's pose is never shown)."""
+    kept = np.flatnonzero(ok)
+    return float(np.abs(np.diff(arm_q[kept], axis=0)).max()) if len(kept) > 1 else 0.0
+
+
+def _split_flips(track: _Track, max_step: float) -> None:
+    """A joint that jumps more than ``max_step`` between kept frames (the warm start ran into a
+    joint limit and the restart found the other branch: Panda's wrist roll on add_remove_lid)
+    splits the kept frames into runs; the longest run stays, the others are rejected as
+    DISCONTINUITY, frame by frame, rather than the whole base."""
+    kept = np.flatnonzero(track.status == Reason.OK)
+    if len(kept) < 2:
+        return
+    jumps = np.flatnonzero(np.abs(np.diff(track.arm_q[kept], axis=0)).max(axis=1) > max_step)
+    if not len(jumps):
+        return
+    runs = np.split(kept, jumps + 1)
+    longest = max(runs, key=len)
+    for run in runs:
+        if run is not longest:
+            track.status[run] = Reason.DISCONTINUITY
 
 
 def _name(r: Reason) -> str:
