@@ -281,7 +281,8 @@ class ArmModel:
         return np.stack([root_pose[i] @ self.hand_root_from_wrist(hand_qpos[i]) for i in range(len(root_pose))])
 
     def assembly_qpos(self, arm_q: np.ndarray, hand_qpos: np.ndarray, hand_joint_names: list[str]) -> np.ndarray:
-        """Full assembly qpos (T,dof): arm joints from IK, finger joints by name from the hand."""
+        """Full assembly qpos (T,dof): arm joints from IK, finger joints by name from the hand;
+        within the URDF's limits (the IK may end ``joint_limit_tol`` past them)."""
         names = self.kin.joint_names
         out = np.tile(self.q_fixed, (len(arm_q), 1))
         out[:, self.arm_idx] = arm_q
@@ -290,7 +291,8 @@ class ArmModel:
             n = self._n(n)
             if n in names and names.index(n) not in arm:
                 out[:, names.index(n)] = hand_qpos[:, j]
-        return out
+        lo, hi = self.kin.lower, self.kin.upper
+        return np.clip(out, np.where(np.isfinite(lo), lo, -np.inf), np.where(np.isfinite(hi), hi, np.inf))
 
 
 def arm_source(embodiment_id: str) -> ArmSource:

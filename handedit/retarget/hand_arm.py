@@ -150,8 +150,6 @@ def _solve(embodiment_id: str, cfg: RetargetConfig, vb_cfg: VirtualBaseConfig, c
         root = np.einsum("tij,jk->tik", np.linalg.inv(wfc), base)
     else:
         root = np.tile(base, (n, 1, 1))
-    lo, hi = arm.kin.lower, arm.kin.upper
-    qpos = np.clip(qpos, np.where(np.isfinite(lo), lo, -np.inf), np.where(np.isfinite(hi), hi, np.inf))
     return HandArmResult(qpos.astype(np.float32), root, hand.fingertip_error_mm, hand.wrist_error_mm, status, details,
                          vb, list(names), notes, hand)
 
