@@ -19,7 +19,9 @@ coverage (the share of the projected forearm capsule, wrist to elbow, 4 cm radiu
 the hand-arm mask: a sleeve left beside the robot arm scores low), per clip and side,
 pixel-weighted over the frames the hand is in view, also at 3 and 2 cm (the forearm's core:
 a slim forearm leaves table inside the 4 cm capsule), beside the mask's half-width across the
-forearm (``half_widths``: a bare forearm of 3 cm covers about 3/4 of the 4 cm capsule); the kept hand-arm frames with more than
+forearm (``half_widths``: a bare forearm of 3 cm covers about 3/4 of the 4 cm capsule), how far its centre lies from
+the annotated axis, and how far its edge lies from the colour edge beside it (a sleeve left out of the mask reads
+centimetres there, a mask that follows the arm's visible edge millimetres); the kept hand-arm frames with more than
 25 % of a robot outside the human arm's corridor (the hand-arm mask plus the capsule, grown
 by 5 % of the image width); composite's two hand-arm screens (frame-sides rejected for OFF_ARM and
 for HAND_HIDDEN, a robot arm over where the human hand was seen); and the RESIDUE rejections per clip: restoration's (frames) and
@@ -237,12 +239,34 @@ COVERAGE_RADII_M = (0.04, 0.03, 0.02)
 HALF_WIDTH_AT_M = (0.06, 0.08, 0.10, 0.12, 0.14)  # along the forearm from the wrist: past the hand, before the elbow leaves
 
 
-def half_widths(mask, wrist, elbow, intr) -> list[tuple[float, float]]:
+EDGE_SEARCH_M = (0.015, 0.07)  # a forearm's colour edge is looked for this far out from the mask's cross-section centre
+EDGE_WITHIN_M = 0.005  # a mask edge this close to the colour edge follows it
+
+
+def _step(prof, lo: int) -> int:
+    """Where a profile (n,3) from the forearm's axis outward splits best into two colours
+    (the largest between-class variance, Otsu's criterion, with the split at >= ``lo``): a
+    sleeve's folds and seams are edges too, but not where the arm meets the table."""
+    import numpy as np
+
+    n = len(prof)
+    c = np.cumsum(prof, axis=0)
+    j = np.arange(max(lo, 1), n - 2)
+    inner, outer = c[j - 1] / j[:, None], (c[-1] - c[j - 1]) / (n - j)[:, None]
+    return int(j[np.argmax(j * (n - j) * ((inner - outer) ** 2).sum(1))])
+
+
+def half_widths(mask, wrist, elbow, intr, lab=None) -> list[tuple[float, float, float]]:
     """The hand-arm mask's half-width across the forearm (m) a few cm up from the wrist: the
     arm's own radius where the mask follows it, so the coverage at a radius above it reads
     roughly their ratio (a bare forearm of 3 cm cannot fill a 4 cm capsule) rather than a miss;
     with each, how far the mask's cross-section centre lies from the annotated forearm's axis
-    (m): an axis beside the visible arm leaves table inside the capsule on one side."""
+    (m): an axis beside the visible arm leaves table inside the capsule on one side; and, given
+    the frame in Lab (``lab``), how far the mask's edge lies from the colour edge (``_step``)
+    at least 1.5 cm out on the same side, looked for out to 7 cm or past the mask's edge (m,
+    mean of the sides that end in view): near 0 where the mask follows
+    the arm's visible edge (sleeve or skin), whatever the capsule's radius."""
+    import cv2
     import numpy as np
 
     from handedit.camera import project
@@ -259,18 +283,31 @@ def half_widths(mask, wrist, elbow, intr) -> list[tuple[float, float]]:
         n = np.array([-ax[1], ax[0]])
         if not (0 <= u0 < w and 0 <= v0 < h) or not mask[int(v0), int(u0)]:
             continue
-        reach, edge = [], False
+        reach, border = [], []
         for sign in (1, -1):  # walk out of the mask on both sides of the axis
             k = 1
             while True:
                 u, v = u0 + sign * k * n[0], v0 + sign * k * n[1]
                 if not (0 <= u < w and 0 <= v < h) or not mask[int(v), int(u)]:
-                    edge |= not (0 <= u < w and 0 <= v < h)
+                    border.append(not (0 <= u < w and 0 <= v < h))
                     break
                 k += 1
             reach.append(k - 1)
+        edge = any(border)
         m_per_px = p[2] / intr.fx  # the offset only where both sides end inside the view
-        out.append((sum(reach) / 2 * m_per_px, float("nan") if edge else abs(reach[0] - reach[1]) / 2 * m_per_px))
+        gap = float("nan")
+        if lab is not None:
+            lo, hi = (int(round(x / m_per_px)) for x in EDGE_SEARCH_M)
+            gaps = []
+            for sign, r, out_of_view in zip((1, -1), reach, border):
+                ks = np.arange(0, max(hi, r + lo) + 1)  # past the mask's edge, however wide the sleeve
+                us, vs = u0 + sign * ks * n[0], v0 + sign * ks * n[1]
+                if out_of_view or us.min() < 0 or vs.min() < 0 or us.max() > w - 1 or vs.max() > h - 1:
+                    continue  # the side leaves the view
+                prof = cv2.remap(lab, us.astype(np.float32)[None], vs.astype(np.float32)[None], cv2.INTER_LINEAR)[0]
+                gaps.append(abs(r - _step(prof, lo)) * m_per_px)
+            gap = float(np.mean(gaps)) if gaps else float("nan")
+        out.append((sum(reach) / 2 * m_per_px, float("nan") if edge else abs(reach[0] - reach[1]) / 2 * m_per_px, gap))
     return out
 
 
@@ -278,6 +315,7 @@ def arm_report(root) -> dict:
     """Forearm coverage per clip x side, off-arm kept frames per clip x hand-arm embodiment,
     RESIDUE rejections per clip, and the share of each restored hole taken from real pixels
     (see the module doc)."""
+    import cv2
     import numpy as np
 
     from handedit.camera import Intrinsics
@@ -303,10 +341,13 @@ def arm_report(root) -> dict:
         kp, arm, arm_ok = reg["keypoints"][:], reg["arm_keypoints"][:], ing["arm_valid"][:]
         hs, handarm = reg["hand_status"][:], seg["handarm_mask"][:]  # read once: every side and embodiment uses it
         shape = (intr.height, intr.width)
+        labs = {}  # each frame in Lab, lightly smoothed, for the colour edges beside the mask (half_widths)
         for k, side in enumerate(ing.attrs["hands"]):
             inside, total, widths = defaultdict(int), defaultdict(int), []
             for t in np.flatnonzero((hs[:, k] == Reason.OK) & arm_ok[:, k, 0]):
-                widths += half_widths(handarm[t, k], kp[t, k, 0], arm[t, k, 0], intr)
+                if t not in labs:
+                    labs[t] = cv2.cvtColor(cv2.GaussianBlur(ing["frames"][t], (5, 5), 0), cv2.COLOR_RGB2LAB).astype(np.float32)
+                widths += half_widths(handarm[t, k], kp[t, k, 0], arm[t, k, 0], intr, labs[t])
                 for r in COVERAGE_RADII_M:
                     cap = forearm_capsule(kp[t, k, 0], arm[t, k, 0], intr, shape, radius_m=r)
                     if coverage(handarm[t, k], cap) is None:
@@ -317,6 +358,9 @@ def arm_report(root) -> dict:
             out["coverage"][(c, side)]["half_width"] = float(np.median([x[0] for x in widths])) if widths else float("nan")
             offsets = [x[1] for x in widths if np.isfinite(x[1])]
             out["coverage"][(c, side)]["axis_offset"] = float(np.median(offsets)) if offsets else float("nan")
+            gaps = np.array([x[2] for x in widths if np.isfinite(x[2])])
+            out["coverage"][(c, side)]["edge_gap"] = float(np.median(gaps)) if len(gaps) else float("nan")
+            out["coverage"][(c, side)]["edge_within"] = float(np.mean(gaps < EDGE_WITHIN_M)) if len(gaps) else float("nan")
         out["residue"][c] = int(sum((root[Unit("restore_background", c, scope=s).path]["status"][:] == Reason.RESIDUE).sum()
                                     for s in ("hand", "hand_arm") if Unit("restore_background", c, scope=s).path in root))
         L = limbs(kp, arm, arm_ok)
@@ -339,11 +383,13 @@ def arm_report(root) -> dict:
 def print_arm_report(rep: dict) -> None:
     radii = "  ".join(f"{100 * r:.0f} cm" for r in COVERAGE_RADII_M)
     print(f"\nforearm coverage (share of the forearm capsule inside the hand-arm mask), per clip and hand, capsule radius {radii};"
-          "\nand the mask's half-width across the forearm, 6-14 cm from the wrist, and how far its centre lies from the "
-          "annotated forearm's axis (medians, cm):")
+          "\nand the mask's half-width across the forearm, 6-14 cm from the wrist, how far its centre lies from the "
+          "annotated forearm's axis, and how far its edge lies from the colour edge (medians, cm; "
+          f"then the share of edges within {100 * EDGE_WITHIN_M:.1f} cm):")
     for (c, side), v in rep["coverage"].items():
         print(f"  {c:<34} {side:<6} " + "  ".join(f"{v[r]:5.2f}" for r in COVERAGE_RADII_M)
-              + f"   half-width {100 * v['half_width']:4.1f}   axis offset {100 * v['axis_offset']:4.1f}")
+              + f"   half-width {100 * v['half_width']:4.1f}   axis offset {100 * v['axis_offset']:4.1f}"
+              + f"   edge gap {100 * v['edge_gap']:4.2f}  {v['edge_within']:4.2f}")
     print("\nkept hand-arm frame-sides with > 25 % of the robot outside the arm corridor:")
     for (c, e), (bad, n) in rep["off_arm"].items():
         print(f"  {c:<34} {e:<14} {bad:>4} of {n}")
