@@ -465,14 +465,17 @@ def main() -> None:
     if args.repeats > 1 and not args.store:
         return repeated(args)
     if args.store:
-        from handedit.storage import open_store
+        from _runs import open_run
         from handedit.storage.summary import run_summary
+
+        def run(s: str):
+            return open_run(s, "bench/egodex.py", f"bench/egodex.py --out {s}")
 
         if len(args.store) > 1:
             if not args.roster:
                 sys.exit("bench/egodex.py: several --store are compared by --roster only")
-            return print_roster([open_store(s) for s in args.store])
-        root = open_store(args.store[0])
+            return print_roster([run(s) for s in args.store])
+        root = run(args.store[0])
         units = run_summary(root)["units"]
         for u in units:
             print(f"  {u['clip']:<34} {u['embodiment']:<14} {str(u['side']):<6} {u['kept']:>4}/{u['frames']:<4} "

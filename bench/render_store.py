@@ -29,6 +29,9 @@ from pathlib import Path
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _runs import open_run  # noqa: E402
 
 
 def main() -> None:
@@ -38,7 +41,7 @@ def main() -> None:
     from handedit.reasons import Reason, gate
     from handedit.render import render_embodiment
     from handedit.render.stage import RenderConfig, render_stage
-    from handedit.storage import StoreError, Unit, open_store
+    from handedit.storage import Unit
     from handedit.storage.layout import clip_path
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -50,10 +53,7 @@ def main() -> None:
                     help=f"RenderConfig.lod_px (default {RenderConfig().lod_px}; 0: full meshes always)")
     ap.add_argument("--against-full", action="store_true", help="also time the full meshes, side by side")
     args = ap.parse_args()
-    try:
-        root = open_store(args.store)
-    except StoreError as e:
-        sys.exit(f"bench/render_store.py: {e} (bench/egodex.py --out {args.store} makes one)")
+    root = open_run(args.store, "bench/render_store.py", f"bench/egodex.py --out {args.store}")
     cfg = RenderConfig(decimate=args.decimate, lod_px=args.lod_px or None)
     configs = {"full": RenderConfig(lod_px=None), "this": cfg} if args.against_full else {"this": cfg}
     print(f"load average {os.getloadavg()[0]:.2f}; decimate {cfg.decimate}; lod_px {cfg.lod_px}")

@@ -23,6 +23,9 @@ from pathlib import Path
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _runs import open_run  # noqa: E402
 
 
 def main() -> None:
@@ -33,16 +36,12 @@ def main() -> None:
     from handedit.render.stage import RenderConfig, render_stage
     from handedit.retarget import RetargetConfig
     from handedit.retarget.sides import retarget_hand_arm_sides, retarget_sides
-    from handedit.storage import StoreError, open_store
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--store", required=True, help="an output folder of bench/egodex.py (--roster for the whole roster)")
     ap.add_argument("--embodiment", action="append", help="default: every embodiment in the store")
     args = ap.parse_args()
-    try:
-        root = open_store(args.store)
-    except StoreError as e:
-        sys.exit(f"bench/setup_cost.py: {e} (bench/egodex.py --roster --out {args.store} makes one)")
+    root = open_run(args.store, "bench/setup_cost.py", f"bench/egodex.py --roster --out {args.store}")
     clips = sorted(root["clips"].group_keys())
     embs = args.embodiment or sorted(root[f"clips/{clips[0]}/embodiments"].group_keys())
     inputs = {}
