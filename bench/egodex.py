@@ -341,26 +341,31 @@ def arm_report(root) -> dict:
         kp, arm, arm_ok = reg["keypoints"][:], reg["arm_keypoints"][:], ing["arm_valid"][:]
         hs, handarm = reg["hand_status"][:], seg["handarm_mask"][:]  # read once: every side and embodiment uses it
         shape = (intr.height, intr.width)
-        labs = {}  # each frame in Lab, lightly smoothed, for the colour edges beside the mask (half_widths)
-        for k, side in enumerate(ing.attrs["hands"]):
-            inside, total, widths = defaultdict(int), defaultdict(int), []
-            for t in np.flatnonzero((hs[:, k] == Reason.OK) & arm_ok[:, k, 0]):
-                if t not in labs:
-                    labs[t] = cv2.cvtColor(cv2.GaussianBlur(ing["frames"][t], (5, 5), 0), cv2.COLOR_RGB2LAB).astype(np.float32)
-                widths += half_widths(handarm[t, k], kp[t, k, 0], arm[t, k, 0], intr, labs[t])
+        sides = list(ing.attrs["hands"])
+        inside = [defaultdict(int) for _ in sides]
+        total = [defaultdict(int) for _ in sides]
+        widths: list[list] = [[] for _ in sides]
+        measured = (hs == Reason.OK) & arm_ok[:, :, 0]  # (T, sides)
+        for t in np.flatnonzero(measured.any(axis=1)):  # each frame read and put in Lab once, for both sides
+            lab = cv2.cvtColor(cv2.GaussianBlur(ing["frames"][t], (5, 5), 0), cv2.COLOR_RGB2LAB).astype(np.float32)
+            for k in np.flatnonzero(measured[t]):
+                widths[k] += half_widths(handarm[t, k], kp[t, k, 0], arm[t, k, 0], intr, lab)
                 for r in COVERAGE_RADII_M:
                     cap = forearm_capsule(kp[t, k, 0], arm[t, k, 0], intr, shape, radius_m=r)
                     if coverage(handarm[t, k], cap) is None:
                         break  # the forearm is out of view (judged at the widest radius: the frames stay the same)
-                    inside[r] += int((handarm[t, k] & cap).sum())
-                    total[r] += int(cap.sum())
-            out["coverage"][(c, side)] = {r: inside[r] / total[r] if total[r] else float("nan") for r in COVERAGE_RADII_M}
-            out["coverage"][(c, side)]["half_width"] = float(np.median([x[0] for x in widths])) if widths else float("nan")
-            offsets = [x[1] for x in widths if np.isfinite(x[1])]
-            out["coverage"][(c, side)]["axis_offset"] = float(np.median(offsets)) if offsets else float("nan")
-            gaps = np.array([x[2] for x in widths if np.isfinite(x[2])])
-            out["coverage"][(c, side)]["edge_gap"] = float(np.median(gaps)) if len(gaps) else float("nan")
-            out["coverage"][(c, side)]["edge_within"] = float(np.mean(gaps < EDGE_WITHIN_M)) if len(gaps) else float("nan")
+                    inside[k][r] += int((handarm[t, k] & cap).sum())
+                    total[k][r] += int(cap.sum())
+        for k, side in enumerate(sides):
+            cov = {r: inside[k][r] / total[k][r] if total[k][r] else float("nan") for r in COVERAGE_RADII_M}
+            w = widths[k]
+            cov["half_width"] = float(np.median([x[0] for x in w])) if w else float("nan")
+            offsets = [x[1] for x in w if np.isfinite(x[1])]
+            cov["axis_offset"] = float(np.median(offsets)) if offsets else float("nan")
+            gaps = np.array([x[2] for x in w if np.isfinite(x[2])])
+            cov["edge_gap"] = float(np.median(gaps)) if len(gaps) else float("nan")
+            cov["edge_within"] = float(np.mean(gaps < EDGE_WITHIN_M)) if len(gaps) else float("nan")
+            out["coverage"][(c, side)] = cov
         out["residue"][c] = int(sum((root[Unit("restore_background", c, scope=s).path]["status"][:] == Reason.RESIDUE).sum()
                                     for s in ("hand", "hand_arm") if Unit("restore_background", c, scope=s).path in root))
         L = limbs(kp, arm, arm_ok)
