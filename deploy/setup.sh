@@ -45,6 +45,16 @@ if [ -n "$extras" ] && ! ls /usr/lib/postgresql/*/bin/pg_ctl >/dev/null 2>&1 && 
     || echo "warning: could not install postgresql; tests/test_deployments_live.py will fail until it is installed"
 fi
 
+# pip stops half-way with "No space left on device" on a full disk: say so before starting.
+# .venv takes ~2 GB, ~3.5 GB with the test extras; LeRobot's venv ~6 GB more (its torch is a CUDA build).
+free_mb() { df -Pm "$1" | awk 'NR==2 {print $4}'; }
+need_mb=2560
+[ -n "$extras" ] && need_mb=4096
+if [ ! -x .venv/bin/python ] && [ "$(free_mb .)" -lt "$need_mb" ]; then
+  echo "deploy/setup.sh: only $(free_mb .) MB free on $(df -P . | awk 'NR==2 {print $6}'); .venv needs about $need_mb MB." >&2
+  echo "Free some space (rm -rf /tmp/pytest-of-\$USER, old runs under runs/) and run it again." >&2
+  exit 1
+fi
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q -e ".${extras}"
@@ -53,6 +63,8 @@ fi
   || echo "warning: could not fetch the hand models; videos without keypoints stop at estimate_hands until \`handedit models fetch\` succeeds"
 # the test that loads an exported dataset with the official LeRobot (its own venv: its pins conflict)
 if [ -n "$extras" ]; then
+  [ -x .venv-lerobot/bin/python ] || [ "$(free_mb .)" -ge 7168 ] \
+    || echo "warning: only $(free_mb .) MB free; LeRobot's venv needs about 7 GB and may not fit"
   bash deploy/lerobot-env.sh \
     || echo "warning: could not set up LeRobot's venv; tests/test_export_lerobot.py will fail until \`bash deploy/lerobot-env.sh\` succeeds"
 fi

@@ -2,15 +2,27 @@
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
 import pytest
 
+
+def _scratch(prefix: str) -> str:
+    """A temporary folder removed when the test run ends (left behind, each run's Prefect home and
+    cache, ~20 MB, piled up in /tmp)."""
+    path = tempfile.mkdtemp(prefix=prefix)
+    atexit.register(shutil.rmtree, path, ignore_errors=True)
+    return path
+
+
 # Before Prefect is imported anywhere: an isolated home, no telemetry, quiet logs.
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-os.environ.setdefault("PREFECT_HOME", tempfile.mkdtemp(prefix="handedit-prefect-"))
+if "PREFECT_HOME" not in os.environ:
+    os.environ["PREFECT_HOME"] = _scratch("handedit-prefect-")
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
 os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "error")
@@ -21,7 +33,7 @@ if "HANDEDIT_HAND_MODEL_DIR" not in os.environ:
     from handedit.models.fetch import default_model_dir
 
     os.environ["HANDEDIT_HAND_MODEL_DIR"] = str(default_model_dir())
-os.environ["HANDEDIT_CACHE_DIR"] = tempfile.mkdtemp(prefix="handedit-cache-")
+os.environ["HANDEDIT_CACHE_DIR"] = _scratch("handedit-cache-")
 
 REPO = Path(__file__).resolve().parents[1]
 
