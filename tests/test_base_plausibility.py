@@ -130,6 +130,61 @@ def test_a_neighbours_settled_branch_is_taken_without_the_seed_search(assets, mo
     assert len(solves) == 1 + len(seeds) + CFG.body_seeds  # the neighbour kept more: search again
 
 
+def test_the_body_seeds_search_for_clearance_only_once_a_seed_reached_the_target(assets, monkeypatch):
+    """A first frame 3 m from the base: no seed reaches it, so the random body seeds (which look
+    for a branch clearer of the operator, not for reach) are not tried, and the closest of the
+    regular seeds' solutions is returned, rejected; one that reaches but keeps too little
+    clearance tries them all (the test above)."""
+    import importlib
+
+    vb = importlib.import_module("handedit.retarget.virtual_base")
+    targets, Tb = _known_sequence()
+    arm = arm_model(EMB)
+    far = np.linalg.inv(Tb) @ targets[0]
+    far[:3, 3] *= 3.0 / np.linalg.norm(far[:3, 3])
+    solves = []
+    solve = type(arm).solve
+
+    def counted(self, *a, **k):
+        out = solve(self, *a, **k)
+        solves.append(out)
+        return out
+
+    monkeypatch.setattr(type(arm), "solve", counted)
+    seeds = [(arm.lo_s + arm.hi_s) / 2, np.zeros(arm.n)]
+    sol, settled = vb._first_frame(arm, far, seeds, CFG, lambda q: 0.13)
+    assert len(solves) == len(seeds) and settled is None
+    assert sol.pos_err_mm > CFG.pos_tol_mm
+    assert sol.pos_err_mm + 10 * sol.rot_err_deg == min(s.pos_err_mm + 10 * s.rot_err_deg for s in solves)
+
+
+def test_a_first_frame_no_seed_reached_hints_no_neighbour(assets, monkeypatch):
+    """The next candidate starts from its neighbour's first-frame joints only when those reached
+    the target: a closest miss (IK_INFEASIBLE, here every third candidate's, made so after its
+    solve) would steer it to whatever branch the miss lay on."""
+    import importlib
+
+    vb = importlib.import_module("handedit.retarget.virtual_base")
+    targets, Tb = _known_sequence()
+    evaluate, hints, made = vb._evaluate, [], []
+
+    def spoiled(*a, **k):
+        hints.append(a[6] if len(a) > 6 else k.get("hint"))
+        track = evaluate(*a, **k)
+        made.append(len(made) % 3 == 0)
+        if made[-1]:
+            track.status[0] = Reason.IK_INFEASIBLE
+        return track
+
+    monkeypatch.setattr(vb, "_evaluate", spoiled)
+    search_virtual_base(targets, np.ones(len(targets), bool), EMB, CFG, up=UP, init_base=Tb)
+    assert len(hints) >= 27
+    after_miss = [h for h, miss in zip(hints[1:], made[:-1]) if miss]
+    after_reach = [h for h, miss in zip(hints[1:], made[:-1]) if not miss]
+    assert after_miss and all(h is None for h in after_miss)
+    assert after_reach and all(h is not None for h in after_reach)
+
+
 def test_one_failed_frame_in_fifty_does_not_discard_a_candidate(assets):
     """critical_tolerance: 1 of 50 critical frames may fail; that frame alone is rejected."""
     targets, Tb = _known_sequence(n=50)

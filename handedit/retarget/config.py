@@ -13,7 +13,7 @@ SEARCH_HAND_HIDDEN = 0.25  # composite's MAX_HAND_HIDDEN (0.2) as the search's k
 
 class VirtualBaseConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
-    VERSION: ClassVar[int] = 9  # 3: head-torso keep-out, critical tolerance, refinement grid, plausibility ranking;
+    VERSION: ClassVar[int] = 10  # 3: head-torso keep-out, critical tolerance, refinement grid, plausibility ranking;
     # 4: the footprint is the links' visual hulls, and frames composite would drop as off-arm count against a base;
     # 5: candidates discarded for body collisions alone are a last resort (their frames fail, not the sequence);
     # 6: a candidate's first frame tries Newton from its neighbour's solution before any cold IPOPT;
@@ -22,7 +22,8 @@ class VirtualBaseConfig(BaseModel):
     # solved further (its remaining frames read NO_VALID_BASE); previews are rendered when asked for (``previews``);
     # 8: frames where the robot's own arm would hide its hand (composite's HAND_HIDDEN) count against a base too;
     # the second grid is searched when the best of the 27 lies off the human arm, not only when none survives;
-    # 9: a wrist flip (a joint step past max_joint_step) rejects the frames outside the longest run, not the base
+    # 9: a wrist flip (a joint step past max_joint_step) rejects the frames outside the longest run, not the base;
+    # 10: a first frame no seed reaches tries no body seeds and hints no neighbour
 
     init_back: float = Field(0.55, description="base distance behind the wrist centre, in L_r")
     init_up: float = Field(0.10, description="base height above the wrist centre, in L_r")
@@ -67,7 +68,7 @@ class VirtualBaseConfig(BaseModel):
                                    "composite's HAND_HIDDEN screen would drop it (the hull is smaller than the hand's "
                                    "mask: 0.25 here reads as composite's 0.2)")
     body_seeds: int = Field(10, ge=0, description="first frame: random IK restarts added when no seed's arm keeps clear of "
-                            "the operator's body")
+                            "the operator's body (and some seed reached the target)")
     review: Literal["auto_top1", "manual"] = "auto_top1"
     top_k: int = Field(3, ge=1)
     dual_arm_candidates: int = Field(9, ge=1, description="the dual-arm check tries pairs of each side's best this many "

@@ -58,6 +58,7 @@ GRID_YAW_DEG = (-15.0, 0.0, 15.0)
 REFINE_OUTWARD = (0.0, 0.15, 0.30)  # the second grid (refine_grid), in L_r
 REFINE_DOWN = (0.0, 0.15, 0.30)
 SETTLED_SLACK_M = 0.02  # a neighbour's settled branch is taken when it keeps this much less clearance at most
+_UNREACHED = (Reason.OUT_OF_REACH, Reason.IK_INFEASIBLE)  # a first frame no seed reached: its closest miss is no hint
 
 
 @dataclass
@@ -408,7 +409,10 @@ def _first_frame(arm: ArmModel, target: np.ndarray, seeds: list, cfg: VirtualBas
     its links keep clear of the operator's body by ``body_radius_m`` + 5 cm (or there is no
     body to keep clear of); otherwise every seed is tried and the feasible one with the most
     clearance wins, ``body_seeds`` more random seeds included (an elbow-up branch of a UR-type
-    arm passes the operator's neck); with none feasible, the closest solution.
+    arm passes the operator's neck) when some seed reached the target; with none feasible, the
+    closest solution (which ``search_virtual_base`` gives no neighbour as a hint). On EgoDex
+    add_remove_lid 0:94, 47 of KUKA+Sharpa's 108 first frames were reached by no seed: their body
+    seeds were 470 of its 829 cold IPOPT solves, and none of them reached either.
 
     ``hinted``: the first seed is the neighbouring candidate's solution, solved by Newton when
     it converges near it (the bases differ by a few cm: most candidates need no cold IPOPT);
@@ -418,10 +422,13 @@ def _first_frame(arm: ArmModel, target: np.ndarray, seeds: list, cfg: VirtualBas
     when it kept the full clearance or nothing was feasible)."""
     sols = []
     need = cfg.body_radius_m + cfg.link_radius + 0.05
+    n_regular = len(seeds)
     if clearance is not None and cfg.body_radius_m > 0 and len(seeds) > 1:  # more branches to choose from
         rng = np.random.default_rng(1)
         seeds = list(seeds) + [rng.uniform(arm.lo_s, arm.hi_s) for _ in range(cfg.body_seeds)]
     for i, s0 in enumerate(seeds):
+        if i == n_regular and not any(ok for _, ok, _ in sols):
+            break  # the body seeds look for a clearer branch, not for reach: none of the seeds reached the target
         sol = arm.solve(target, s0, near=hinted and i == 0)
         sol_ok = sol.pos_err_mm <= cfg.pos_tol_mm and sol.rot_err_deg <= cfg.rot_tol_deg
         room = clearance(sol.x) if clearance is not None and sol_ok and cfg.body_radius_m > 0 else float("inf")
@@ -599,7 +606,7 @@ def search_virtual_base(
     def run(grid, stage: str) -> None:
         first = int(np.flatnonzero(valid)[0])
         for g in grid:
-            hint = tracks[-1].arm_q[first] if tracks and tracks[-1].status[first] != Reason.OUT_OF_REACH else None
+            hint = tracks[-1].arm_q[first] if tracks and tracks[-1].status[first] not in _UNREACHED else None
             tr = _evaluate(arm, g[3], targets, valid, support_plane, cfg, hint, cameras, up,
                            tracks[-1].settled if hint is not None else None, critical)
             sc = _score(len(tracks), g, tr, arm, valid, critical, cfg)
