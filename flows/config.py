@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Annotated
 
 import yaml
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, ValidationInfo, field_validator
 
 from handedit.embodiments import get_embodiment
 from handedit.qc import QCConfig
@@ -208,19 +208,23 @@ class CurateConfig(BaseModel):
     @field_validator("robots")
     @classmethod
     def _robot_dirs(cls, dirs: list[str]) -> list[str]:
-        """Before ``embodiments`` is checked: its keys may be in these folders."""
-        from handedit.embodiments.robot_files import add_robot_dirs
-
-        dirs = [str(Path(d).expanduser().resolve()) for d in dirs]
-        add_robot_dirs(dirs)
-        return dirs
+        """Absolute, so that workers started elsewhere find the same folders."""
+        return [str(Path(d).expanduser().resolve()) for d in dirs]
 
     @field_validator("embodiments")
     @classmethod
-    def _known_embodiments(cls, ids: list[str]) -> list[str]:
-        """A typo fails before any work starts; missing assets are per-embodiment rejections."""
-        for emb_id in ids:
-            get_embodiment(emb_id)  # raises with the list of known ids
+    def _known_embodiments(cls, ids: list[str], info: ValidationInfo) -> list[str]:
+        """A typo fails before any work starts; missing assets are per-embodiment rejections.
+        Keys may be in the run's ``robots`` folders, looked up for this check only: the process
+        that validates a run (a Prefect worker serving many) keeps no folder of it."""
+        from handedit.embodiments.robot_files import RobotFileError, robot_dirs_added
+
+        try:
+            with robot_dirs_added(info.data.get("robots", [])):
+                for emb_id in ids:
+                    get_embodiment(emb_id)  # raises with the list of known ids
+        except RobotFileError as exc:
+            raise ValueError(f"robots: {exc}") from None
         if len(set(ids)) != len(ids):
             raise ValueError(f"embodiments listed twice: {ids}")
         return ids

@@ -37,6 +37,7 @@ from tqdm import tqdm
 import handedit
 from handedit.digests import embodiment_digest, model_digests as stage_model_digests
 from handedit.embodiments import EmbodimentError, describe_embodiment, get_embodiment, resolve_urdf
+from handedit.embodiments.robot_files import robot_dirs_added
 from handedit.flows import progress as progress_of
 from handedit.flows.api import run_url
 from handedit.flows.config import CurateConfig, PreflightError, dashboard_link
@@ -303,7 +304,8 @@ def curate(config: CurateConfig, progress: bool = False) -> dict:
     loc = Location(config.out)
     version, started = code_version(), now_iso()
     create_or_open_store(loc, config.frames_per_chunk, version)
-    embs = plan_embodiments(config.embodiments)
+    with robot_dirs_added(config.robots):  # the run's robot folders, for this run only
+        embs = plan_embodiments(config.embodiments)
     for e in embs:
         if e.error:
             logger.error("embodiment %s rejected: %s", e.id, e.error)

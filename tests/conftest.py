@@ -73,21 +73,6 @@ def _need(path: Path, what: str) -> Path:
     return path
 
 
-@pytest.fixture(autouse=True)
-def _robot_dirs_restored():
-    """A run's ``robots:`` joins its folders to this process's ``$HANDEDIT_ROBOT_DIRS`` for good
-    (``robot_files.add_robot_dirs``): after a test that curated with one, later tests would look
-    in its ``tmp_path``, which pytest removes once the test passes."""
-    from handedit.embodiments.robot_files import ROBOT_DIRS_ENV
-
-    before = os.environ.get(ROBOT_DIRS_ENV)
-    yield
-    if before is None:
-        os.environ.pop(ROBOT_DIRS_ENV, None)
-    else:
-        os.environ[ROBOT_DIRS_ENV] = before
-
-
 @pytest.fixture(scope="session")
 def shared_dir() -> Path:
     return _need(SHARED, "shared/ folder")

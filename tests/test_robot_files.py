@@ -8,6 +8,8 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import os
+import shutil
 import sys
 from pathlib import Path
 
@@ -17,7 +19,8 @@ import pytest
 import yaml
 
 from handedit.embodiments import EmbodimentError, describe_embodiment, get_embodiment, list_embodiments
-from handedit.embodiments.robot_files import BUILTIN, ROBOT_DIRS_ENV, RobotFileError, current_files, parse_file
+from handedit.embodiments.robot_files import (BUILTIN, ROBOT_DIRS_ENV, RobotFileError, current_files, parse_file,
+                                              robot_dirs_added, user_dirs)
 from handedit.flows.cli import main
 
 SPECS = Path(__file__).with_name("robot_specs.json")
@@ -103,6 +106,7 @@ def test_a_robot_added_by_one_file_curates_a_demo_clip(tmp_path, monkeypatch, ca
                        cluster=ClusterConfig(address=dask_cluster.scheduler_address))
     summary = run_curate(cfg)
     assert not summary["errors"], summary["errors"]
+    assert ROBOT_DIRS_ENV not in os.environ  # the driver keeps no folder of the run once it is over
     root = open_store(tmp_path / "run")
     clip = "synthetic-0000"
     kept = root[Unit("qc", clip, embodiment="myhand").path]["status"][:] == Reason.OK
@@ -123,6 +127,46 @@ def test_a_robot_added_by_one_file_curates_a_demo_clip(tmp_path, monkeypatch, ca
     pairs = pd.read_parquet(rel / "v0001" / "pairs.parquet")
     mine = pairs[pairs["embodiment"] == "myhand"]
     assert len(mine) == kept.sum() and mine["instruction"].str.contains("My Hand").all()
+
+
+def test_a_runs_robot_folders_are_looked_up_for_that_run_only(tmp_path, monkeypatch):
+    """A process that validates many runs (a Prefect worker serving deployments) keeps no run's
+    folders: once an earlier run's folder is deleted, later runs still validate."""
+    from pydantic import ValidationError
+
+    from handedit.flows.config import CurateConfig
+
+    monkeypatch.delenv(ROBOT_DIRS_ENV, raising=False)
+    _my_hand(tmp_path / "mine")
+    cfg = CurateConfig(out=str(tmp_path / "run"), robots=[str(tmp_path / "mine")], embodiments=["myhand"])
+    assert cfg.robots == [str((tmp_path / "mine").resolve())] and ROBOT_DIRS_ENV not in os.environ
+    shutil.rmtree(tmp_path / "mine")
+    assert CurateConfig(out=str(tmp_path / "run"), embodiments=["allegro"]).embodiments == ["allegro"]
+    with pytest.raises(ValidationError, match="unknown embodiment id 'myhand'"):
+        CurateConfig(out=str(tmp_path / "run"), embodiments=["myhand"])
+    with pytest.raises(ValidationError, match=r"robots: .*mine.*not a folder"):
+        CurateConfig(out=str(tmp_path / "run"), robots=[str(tmp_path / "mine")], embodiments=["allegro"])
+    assert ROBOT_DIRS_ENV not in os.environ
+
+
+def test_overlapping_runs_on_one_worker_keep_each_others_folders(tmp_path, monkeypatch):
+    """A worker's threads run two runs' tasks at once; the one that ends first must not take the
+    other's folder away (nor the folders the worker started with)."""
+    own, a, b = (tmp_path / n for n in ("own", "a", "b"))
+    for d in (own, a, b):
+        d.mkdir()
+    monkeypatch.setenv(ROBOT_DIRS_ENV, str(own))
+    first, second = robot_dirs_added([str(a)]), robot_dirs_added([str(b), str(own)])
+    first.__enter__()
+    second.__enter__()
+    assert user_dirs() == [own, a, b]
+    first.__exit__(None, None, None)
+    assert user_dirs() == [own, b]
+    second.__exit__(None, None, None)
+    assert os.environ[ROBOT_DIRS_ENV] == str(own)
+    with robot_dirs_added([str(a)]), robot_dirs_added([str(a)]):
+        pass
+    assert os.environ[ROBOT_DIRS_ENV] == str(own)
 
 
 def test_a_bad_robot_file_is_one_message_naming_the_file_and_field(tmp_path, monkeypatch):

@@ -33,6 +33,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import os
+import threading
 from pathlib import Path
 from typing import Literal, Union
 
@@ -237,28 +238,54 @@ def user_dirs() -> list[Path]:
     return [Path(p).expanduser() for p in raw.split(os.pathsep) if p.strip()]
 
 
-def add_robot_dirs(dirs: list[str]) -> None:
-    """Add folders to this process's ``$HANDEDIT_ROBOT_DIRS`` (a run's ``robots:``; the local
-    workers it starts inherit them, and each embodiment task adds them again on its worker)."""
-    have = [d for d in os.environ.get(ROBOT_DIRS_ENV, "").split(os.pathsep) if d]
-    new = [str(d) for d in dirs if str(d) not in have]
-    if new:
-        os.environ[ROBOT_DIRS_ENV] = os.pathsep.join([*have, *new])
-        current_files()  # a folder that is not one, or a clash, fails here, naming the files
+_scopes_lock = threading.Lock()
+_scoped: dict[str, int] = {}  # folder -> how many open ``robot_dirs_added`` scopes named it
+_outside: list[str | None] = [None]  # the variable's value when the first open scope began
+
+
+def _folders(raw: str | None) -> list[str]:
+    return [d for d in (raw or "").split(os.pathsep) if d]
 
 
 @contextlib.contextmanager
 def robot_dirs_added(dirs: list[str]):
-    """``add_robot_dirs`` for the duration of a task: a worker serves many runs."""
-    before = os.environ.get(ROBOT_DIRS_ENV)
-    add_robot_dirs(dirs)
+    """The run's ``robots:`` folders in ``$HANDEDIT_ROBOT_DIRS`` while the block runs, and only then.
+
+    Scoped, not joined for good: a driver or a Dask worker serves many runs, and a folder of an
+    earlier run that was since deleted would fail every later one ("not a folder"). Scopes nest and
+    overlap across a worker's threads (a count per folder, under a lock): the variable holds the
+    folders any open scope names, after the ones it held outside every scope. A folder that is not
+    one, or a key defined twice, fails on entry, naming the files."""
+    dirs = [str(d) for d in dirs]
+    if not dirs:
+        yield
+        return
+    with _scopes_lock:
+        if not _scoped:
+            _outside[0] = os.environ.get(ROBOT_DIRS_ENV)
+        for d in dirs:
+            _scoped[d] = _scoped.get(d, 0) + 1
+        _set_scoped()
     try:
+        current_files()
         yield
     finally:
-        if before is None:
-            os.environ.pop(ROBOT_DIRS_ENV, None)
-        else:
-            os.environ[ROBOT_DIRS_ENV] = before
+        with _scopes_lock:
+            for d in dirs:
+                _scoped[d] -= 1
+                if not _scoped[d]:
+                    del _scoped[d]
+            _set_scoped()
+
+
+def _set_scoped() -> None:
+    """The variable from the value outside the scopes and the open scopes' folders (lock held)."""
+    have = _folders(_outside[0])
+    value = os.pathsep.join([*have, *(d for d in _scoped if d not in have)])
+    if not _scoped and _outside[0] is None:
+        os.environ.pop(ROBOT_DIRS_ENV, None)
+    elif value or _outside[0] is not None:
+        os.environ[ROBOT_DIRS_ENV] = value
 
 
 def _files_in(d: Path) -> list[Path]:
