@@ -233,3 +233,69 @@ def test_ready_pose_is_collision_free(assets):
     # folding the forearm back onto the upper arm is caught
     folded = np.array([0.0, 0.3, 0.0, -3.0, 0.0, 0.5, 0.785])
     assert self_collision(arm.chain(folded), arm.moving, CFG.link_radius, arm.distal)
+
+
+def test_a_yawed_candidate_is_its_yaw_mate_turned(assets, monkeypatch):
+    """The grid's yaw triples differ only by a turn of the base about its z axis, which the first
+    joint of most arms undoes exactly (``ArmModel.yaw_sign``): a yawed candidate whose first frame
+    lands on its mate's branch takes the mate's track with that joint turned back, every link where
+    the mate's were, and solves no other frame. As good a choice as solving every candidate on its
+    own (every ranking value the same but the joint margin, within 0.02: a redundant arm settles a
+    little elsewhere along its self-motion), with half the IK solves or fewer."""
+    from handedit.retarget.virtual_base import GRID_YAW_DEG, candidate_grid
+
+    emb = "ur5_inspire"  # six joints: no self-motion, so one branch is one solution
+    arm = arm_model(emb)
+    assert arm.yaw_sign != 0 and arm_model("rm75_rohand").yaw_sign == 0  # RM75's first joint is off the base's axis
+    q, a = (arm.lo_s + arm.hi_s) / 2 + 0.4, np.radians(15.0)
+    Rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    np.testing.assert_allclose(Rz @ arm.chain(q - arm.yaw_sign * a * np.eye(arm.n)[0]), arm.chain(q), atol=1e-12)
+    targets, Tb = _known_sequence(n=12, emb=emb)
+    valid = np.ones(len(targets), bool)
+    solves = []
+    monkeypatch.setattr(type(arm), "solve", lambda self, *a, f=type(arm).solve, **k: solves.append(1) or f(self, *a, **k))
+    shared = search_virtual_base(targets, valid, emb, CFG, up=UP, init_base=Tb)
+    n_shared = len(solves)
+    solves.clear()
+    own = search_virtual_base(targets, valid, emb, CFG.model_copy(update={"share_yaw": False}), up=UP, init_base=Tb)
+    assert n_shared <= 0.5 * len(solves), (n_shared, len(solves))
+    assert shared.ranking and shared.chosen == own.chosen and shared.ranking[:3] == own.ranking[:3]
+    assert [c.reason for c in shared.candidates] == [c.reason for c in own.candidates]
+    np.testing.assert_allclose(shared.arm_q, own.arm_q, atol=1e-6)
+    grid, turned = candidate_grid(Tb, arm.reach), 0
+    for k in range(27):
+        if not k % 3:  # yaw -15 starts a triple
+            continue
+        mate = shared.arm_tracks[k - 1].copy()
+        mate[:, 0] -= arm.yaw_sign * np.radians(GRID_YAW_DEG[k % 3] - GRID_YAW_DEG[k % 3 - 1])
+        if np.allclose(shared.arm_tracks[k], mate, atol=1e-12):
+            turned += 1
+            assert np.array_equal(shared.frame_status[k], shared.frame_status[k - 1])
+            for i in np.flatnonzero(shared.frame_status[k] == Reason.OK):  # where its mate's wrist was
+                np.testing.assert_allclose(grid[k][3] @ arm.wrist_pose(shared.arm_tracks[k][i]),
+                                           grid[k - 1][3] @ arm.wrist_pose(shared.arm_tracks[k - 1][i]), atol=1e-9)
+    assert turned >= 12, turned
+
+
+def test_a_yawed_candidate_on_another_branch_is_solved_on_its_own(assets):
+    """The grid's yaw is the paper's way to try other arm postures: a yawed candidate whose own
+    first frame lands off its mate's branch keeps its own track; one on it takes the mate's."""
+    from handedit.retarget.virtual_base import _evaluate, _Track, _yaw_turned, candidate_grid
+
+    arm = arm_model("ur5_inspire")
+    targets, Tb = _known_sequence(n=6, emb="ur5_inspire")
+    valid = np.ones(len(targets), bool)
+    grid = candidate_grid(Tb, arm.reach)
+    mate = _evaluate(arm, grid[12][3], targets, valid, None, CFG)
+    turned = _yaw_turned(arm, grid[12], grid[13], mate)
+    assert turned is not None and _evaluate(arm, grid[13][3], targets, valid, None, CFG, mate.arm_q[0], turned=turned) \
+        is turned
+    elsewhere = _Track(turned.arm_q + 1.0, turned.status.copy(), turned.pos_err, turned.chains)
+    own = _evaluate(arm, grid[13][3], targets, valid, None, CFG, mate.arm_q[0], turned=elsewhere)
+    assert own is not elsewhere and np.abs(own.arm_q - elsewhere.arm_q).max() > 0.5
+    assert _yaw_turned(arm, grid[2], grid[3], mate) is None  # another lateral/forward offset: not a mate
+    xarm = arm_model("xarm_ability")  # seven joints: its candidates are solved on their own
+    assert xarm.yaw_sign != 0 and _yaw_turned(xarm, grid[12], grid[13], mate) is None
+    stuck = _Track(np.tile(arm.lo_s, (6, 1)), np.full(6, Reason.OK), np.zeros(6), mate.chains)
+    pair = (grid[0], grid[1]) if arm.yaw_sign > 0 else (grid[1], grid[0])  # the turn that passes the lower limit
+    assert _yaw_turned(arm, *pair, stuck) is None  # the turned joint would leave its range: solved on its own

@@ -220,6 +220,22 @@ class ArmModel:
             out.append(pts @ T[:3, :3].T + T[:3, 3])
         return out
 
+    @functools.cached_property
+    def yaw_sign(self) -> int:
+        """+1 or -1 when the first arm joint turns about the base's z axis through its origin (as
+        every arm of the roster but RM75's does), so that a base yawed by a turns every link the way
+        that joint at q1 -/+ a does: ``chain(q) == Rz(a) chain(q - yaw_sign a e1)``; 0 otherwise.
+        Checked numerically on the capsule chain (every link the search tests) at random joints."""
+        rng = np.random.default_rng(0)
+        qs = [rng.uniform(self.lo_s, self.hi_s) for _ in range(4)]
+        a = 0.3
+        Rz = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+        for sign in (1, -1):
+            shifted = [q - sign * a * np.eye(self.n)[0] for q in qs]
+            if all(np.abs(Rz @ self.chain(q2) - self.chain(q)).max() < 1e-9 for q, q2 in zip(qs, shifted)):
+                return sign
+        return 0
+
     # -- numeric ----------------------------------------------------------------------
     def full_q(self, qa: np.ndarray) -> np.ndarray:
         q = self.q_fixed.copy()

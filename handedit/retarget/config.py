@@ -13,7 +13,7 @@ SEARCH_HAND_HIDDEN = 0.25  # composite's MAX_HAND_HIDDEN (0.2) as the search's k
 
 class VirtualBaseConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
-    VERSION: ClassVar[int] = 10  # 3: head-torso keep-out, critical tolerance, refinement grid, plausibility ranking;
+    VERSION: ClassVar[int] = 11  # 3: head-torso keep-out, critical tolerance, refinement grid, plausibility ranking;
     # 4: the footprint is the links' visual hulls, and frames composite would drop as off-arm count against a base;
     # 5: candidates discarded for body collisions alone are a last resort (their frames fail, not the sequence);
     # 6: a candidate's first frame tries Newton from its neighbour's solution before any cold IPOPT;
@@ -23,7 +23,8 @@ class VirtualBaseConfig(BaseModel):
     # 8: frames where the robot's own arm would hide its hand (composite's HAND_HIDDEN) count against a base too;
     # the second grid is searched when the best of the 27 lies off the human arm, not only when none survives;
     # 9: a wrist flip (a joint step past max_joint_step) rejects the frames outside the longest run, not the base;
-    # 10: a first frame no seed reaches tries no body seeds and hints no neighbour
+    # 10: a first frame no seed reaches tries no body seeds and hints no neighbour;
+    # 11: a yawed candidate on its yaw mate's branch is the mate's track, first joint turned back (``share_yaw``)
 
     init_back: float = Field(0.55, description="base distance behind the wrist centre, in L_r")
     init_up: float = Field(0.10, description="base height above the wrist centre, in L_r")
@@ -47,6 +48,10 @@ class VirtualBaseConfig(BaseModel):
     joint_limit_tol: float = Field(1e-6, ge=0)
     smooth: float = Field(1e-2, ge=0)
     n_seeds: int = Field(6, ge=1, description="IK restarts on the first frame of a candidate")
+    share_yaw: bool = Field(True, description="a candidate that differs from the one before it by the base's yaw alone, "
+                            "and whose first frame lands on that one's branch, takes that one's joint track with the first "
+                            "joint turned back by the yaw (every link where it was) instead of solving the rest (six-joint arms "
+                            "whose first joint turns about the base's z axis, while that joint stays in its range)")
     critical_tolerance: float = Field(0.02, ge=0, le=1, description="share of a sequence's critical frames a candidate may "
                                       "fail (those frames are rejected on their own) before it is discarded")
     min_reachability: float = Field(0.5, ge=0, le=1, description="a candidate that keeps fewer of the sequence's valid frames "

@@ -329,14 +329,18 @@ def body_distance(points: np.ndarray, frame_from_camera: np.ndarray, up: np.ndar
 def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, valid: np.ndarray,
               plane: np.ndarray | None, cfg: VirtualBaseConfig, hint: np.ndarray | None = None,
               cameras: np.ndarray | None = None, up: np.ndarray | None = None, hint_settled: float | None = None,
-              critical: np.ndarray | None = None) -> _Track:
+              critical: np.ndarray | None = None, turned: _Track | None = None) -> _Track:
     """IK along the sequence for one base. ``hint``: first-frame arm joints of a neighbouring
     candidate (tried first: neighbours differ by a few cm, so it usually converges at once);
     ``hint_settled``: that neighbour's ``_Track.settled``; ``critical``: once more of these
     frames fail (other than for the operator's body) than ``critical_tolerance`` allows, the
     candidate is discarded whatever the rest does, so the rest is not solved (``NO_VALID_BASE``):
     a KUKA arm's 18 unreachable candidates on EgoDex add_remove_lid failed their first two
-    frames, and their 92 others took 90 % of the search, each failed frame a cold IPOPT restart."""
+    frames, and their 92 others took 90 % of the search, each failed frame a cold IPOPT restart.
+    ``turned``: the yaw mate's track turned to this base (``_yaw_turned``): when this base's first
+    frame reaches its target on the mate's branch (no joint ``max_joint_step`` from the mate's, which
+    reached it too), the rest is that track, not solved again; otherwise, on another branch, the
+    candidate is solved on its own, as the grid's yaw meant."""
     T = len(targets)
     base_from_cam = np.linalg.inv(camera_from_base)
     shoulder_cam = camera_from_base[:3, :3] @ arm.shoulder + camera_from_base[:3, 3]
@@ -363,6 +367,9 @@ def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, 
             sol, settled = _first_frame(arm, target, seeds[: 1 if hopeless else len(seeds)], cfg,
                                         None if cameras is None else (lambda q: clearance(q, i)),
                                         hinted=hint is not None, hint_settled=hint_settled)
+            if turned is not None and turned.status[i] not in _UNREACHED and sol.pos_err_mm <= cfg.pos_tol_mm \
+                    and sol.rot_err_deg <= cfg.rot_tol_deg and np.abs(sol.x - turned.arm_q[i]).max() <= cfg.max_joint_step:
+                return turned
         else:
             sol = arm.solve(target, prev.x, q_prev=prev.x, smooth=cfg.smooth, warm=prev)
             if sol.pos_err_mm > cfg.pos_tol_mm or sol.rot_err_deg > cfg.rot_tol_deg:  # restart once from the seed
@@ -395,6 +402,28 @@ def _evaluate(arm: ArmModel, camera_from_base: np.ndarray, targets: np.ndarray, 
             status[i + 1:][np.asarray(valid, bool)[i + 1:]] = Reason.NO_VALID_BASE
             break
     return _Track(arm_q, status, pos_err, chains, settled, stopped)
+
+
+def _yaw_turned(arm: ArmModel, mate_entry, entry, mate: _Track) -> _Track | None:
+    """``entry``'s track from ``mate``'s, the candidate before it, when the two differ by the base's
+    yaw alone (the grid's yaw triples) and the arm's first joint turns about the base's z axis
+    (``ArmModel.yaw_sign``): the mate's joints with that joint turned back by the yaw difference put
+    every link where the mate's were, so every frame reaches and fails as the mate's does (an IK
+    solution of this base whose joint-mid pull on that joint turned with it). ``_evaluate`` takes it
+    once this base's own first frame lands on the same branch. None when the two are not yaw mates,
+    the turned joint would leave its range in a solved frame, or the arm has more than six joints:
+    along a redundant arm's self-motion the joint-mid pull picks the elbow's swing, and that pull
+    turned with the base picks another one (xArm7 on insert_remove 0:96: a forearm 45 degrees off
+    the human one where solving on its own found 30)."""
+    same_place = len(mate_entry) == len(entry) and mate_entry[:2] == entry[:2] and mate_entry[4:] == entry[4:]
+    if arm.yaw_sign == 0 or arm.n > 6 or not same_place or mate_entry[2] == entry[2]:
+        return None
+    solved = ~np.isin(mate.status, (Reason.NO_KEYPOINTS, Reason.NO_VALID_BASE))
+    q = mate.arm_q.copy()
+    q[solved, 0] -= arm.yaw_sign * np.radians(entry[2] - mate_entry[2])
+    if np.any((q[solved, 0] < arm.lo_s[0]) | (q[solved, 0] > arm.hi_s[0])):
+        return None
+    return _Track(q, mate.status.copy(), mate.pos_err.copy(), mate.chains.copy(), mate.settled, mate.stopped)
 
 
 def _allowed_failures(critical: np.ndarray, cfg: VirtualBaseConfig) -> int:
@@ -605,10 +634,11 @@ def search_virtual_base(
 
     def run(grid, stage: str) -> None:
         first = int(np.flatnonzero(valid)[0])
-        for g in grid:
+        for k, g in enumerate(grid):
+            turned = _yaw_turned(arm, grid[k - 1], g, tracks[-1]) if k and cfg.share_yaw else None
             hint = tracks[-1].arm_q[first] if tracks and tracks[-1].status[first] not in _UNREACHED else None
             tr = _evaluate(arm, g[3], targets, valid, support_plane, cfg, hint, cameras, up,
-                           tracks[-1].settled if hint is not None else None, critical)
+                           tracks[-1].settled if hint is not None else None, critical, turned)
             sc = _score(len(tracks), g, tr, arm, valid, critical, cfg)
             sc.stage = stage
             if sc.reason == Reason.OK and view is not None and cameras is not None:
