@@ -12,7 +12,9 @@ whole sequence:
 * a 3x3x3 grid: lateral {-0.10, 0, 0.10} L_r, forward/backward {-0.15, 0, 0.15} L_r, yaw
   {-15, 0, 15} degrees; height, roll and pitch stay upright (base z = world up);
 * per candidate, per frame casadi IK of the robot wrist link onto the target (the human
-  wrist mapped by the hand's fixed SE(3)), warm-started along the sequence;
+  wrist mapped by the hand's fixed SE(3)), warm-started along the sequence; a yawed
+  candidate of a six-joint arm whose first frame lands on the branch of the candidate
+  before it takes that one's track with the first joint turned back (``_yaw_turned``);
 * a frame fails on IK infeasibility, a joint-limit violation, self- or support-plane
   collision, or an arm link inside the operator's head and torso (a capsule from behind
   the head camera down along world up: ``body_distance``); a candidate is discarded when
