@@ -73,6 +73,25 @@ def _need(path: Path, what: str) -> Path:
     return path
 
 
+@pytest.fixture(autouse=True)
+def _robot_dirs_not_leaked():
+    """A run's or a checked file's robot folders count only while it runs
+    (``robot_files.robot_dirs_added``). A test that leaves ``$HANDEDIT_ROBOT_DIRS`` changed has
+    found a leak: it fails here, by name, instead of later tests failing on its removed tmp_path."""
+    from handedit.embodiments.robot_files import ROBOT_DIRS_ENV
+
+    before = os.environ.get(ROBOT_DIRS_ENV)
+    yield
+    after = os.environ.get(ROBOT_DIRS_ENV)
+    if after != before:
+        if before is None:
+            os.environ.pop(ROBOT_DIRS_ENV, None)
+        else:
+            os.environ[ROBOT_DIRS_ENV] = before
+        pytest.fail(f"the test left ${ROBOT_DIRS_ENV}={after!r} (it was {before!r}): a robot folder outlived its scope",
+                    pytrace=False)
+
+
 @pytest.fixture(scope="session")
 def shared_dir() -> Path:
     return _need(SHARED, "shared/ folder")

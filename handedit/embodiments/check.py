@@ -9,30 +9,25 @@ ready to paste, with how far the file's own value is from it.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 
-from handedit.embodiments.robot_files import ROBOT_DIRS_ENV, RobotFileError, current_files, parse_file
+from handedit.embodiments.robot_files import RobotFileError, current_files, parse_file, robot_dirs_added
 
 SHEET_SEEDS = (0, 1, 2)  # the neutral pose and two seeded in-limit poses
 SHEET_SIZE = 320
 
 
-def join_roster(path: Path) -> str:
-    """Make ``path`` part of this process's roster (its folder joins ``$HANDEDIT_ROBOT_DIRS``);
-    its key, or an error naming both files when another file has that key."""
+def roster_key(path: Path) -> tuple[str, list[str]]:
+    """``path``'s key, and the folder that makes the file part of the roster ([] when it already
+    is); an error naming both files when another file has that key."""
     path = path.resolve()
     key = path.stem
     files = current_files()
     if key in files and files[key][0].resolve() != path:
         raise RobotFileError(f"robot key {key!r} is defined twice: {files[key][0]} and {path}; rename {path.name}")
-    if key not in files:
-        dirs = [d for d in os.environ.get(ROBOT_DIRS_ENV, "").split(os.pathsep) if d]
-        os.environ[ROBOT_DIRS_ENV] = os.pathsep.join([*dirs, str(path.parent)])
-        current_files()  # raises for a clash the new folder brings
-    return key
+    return key, ([] if key in files else [str(path.parent)])
 
 
 def wrist_fit(key: str, shipped: np.ndarray) -> dict:
@@ -68,12 +63,19 @@ def preview_sheet(key: str, out: Path) -> Path:
 
 
 def check_robot_file(path: Path, sheet: Path | None = None, residual: bool = True) -> dict:
+    """The checks of ``handedit embodiments check``, with the file's folder in the roster while
+    they run (and only then: a process that checks a file keeps no folder of it)."""
+    f = parse_file(path)
+    key, dirs = roster_key(path)
+    with robot_dirs_added(dirs):  # a clash the new folder brings fails here, naming both files
+        return _check(path, f, key, sheet, residual)
+
+
+def _check(path: Path, f, key: str, sheet: Path | None, residual: bool) -> dict:
     from handedit.embodiments import get_embodiment, resolve_urdf
     from handedit.embodiments.kinematics import get_kinematics
     from handedit.embodiments.linkage import poly_mimics
 
-    f = parse_file(path)
-    key = join_roster(path)
     lines = [f"{path}: a valid {f.kind} file, key {key!r} ({f.name})"]
     report: dict = {"file": str(path), "key": key, "kind": f.kind}
     if f.kind == "arm":
