@@ -237,11 +237,10 @@ def test_ready_pose_is_collision_free(assets):
 
 def test_a_yawed_candidate_is_its_yaw_mate_turned(assets, monkeypatch):
     """The grid's yaw triples differ only by a turn of the base about its z axis, which the first
-    joint of most arms undoes exactly (``ArmModel.yaw_sign``): a yawed candidate whose first frame
-    lands on its mate's branch takes the mate's track with that joint turned back, every link where
-    the mate's were, and solves no other frame. As good a choice as solving every candidate on its
-    own (every ranking value the same but the joint margin, within 0.02: a redundant arm settles a
-    little elsewhere along its self-motion), with half the IK solves or fewer."""
+    joint of most arms undoes exactly (``ArmModel.yaw_sign``): a yawed candidate of a six-joint arm
+    whose first frame lands on its mate's branch takes the mate's track with that joint turned back,
+    every link where the mate's were, and solves no other frame. The same verdicts, ranking and
+    chosen track as solving every candidate on its own, with half the IK solves or fewer."""
     from handedit.retarget.virtual_base import GRID_YAW_DEG, candidate_grid
 
     emb = "ur5_inspire"  # six joints: no self-motion, so one branch is one solution
