@@ -233,18 +233,18 @@ def parse_file(path: Path) -> RobotFile:
         raise RobotFileError(f"robot file {path}: " + "; ".join(lines)) from None
 
 
+def _folders(raw: str | None) -> list[str]:
+    """The entries of a ``$HANDEDIT_ROBOT_DIRS`` value (blank ones dropped)."""
+    return [d for d in (raw or "").split(os.pathsep) if d.strip()]
+
+
 def user_dirs() -> list[Path]:
-    raw = os.environ.get(ROBOT_DIRS_ENV, "")
-    return [Path(p).expanduser() for p in raw.split(os.pathsep) if p.strip()]
+    return [Path(p).expanduser() for p in _folders(os.environ.get(ROBOT_DIRS_ENV))]
 
 
 _scopes_lock = threading.Lock()
 _scoped: dict[str, int] = {}  # folder -> how many open ``robot_dirs_added`` scopes named it
 _outside: list[str | None] = [None]  # the variable's value when the first open scope began
-
-
-def _folders(raw: str | None) -> list[str]:
-    return [d for d in (raw or "").split(os.pathsep) if d]
 
 
 @contextlib.contextmanager
@@ -280,12 +280,14 @@ def robot_dirs_added(dirs: list[str]):
 
 def _set_scoped() -> None:
     """The variable from the value outside the scopes and the open scopes' folders (lock held)."""
-    have = _folders(_outside[0])
-    value = os.pathsep.join([*have, *(d for d in _scoped if d not in have)])
-    if not _scoped and _outside[0] is None:
+    outside = _outside[0]
+    if _scoped:
+        have = _folders(outside)
+        os.environ[ROBOT_DIRS_ENV] = os.pathsep.join([*have, *(d for d in _scoped if d not in have)])
+    elif outside is None:
         os.environ.pop(ROBOT_DIRS_ENV, None)
-    elif value or _outside[0] is not None:
-        os.environ[ROBOT_DIRS_ENV] = value
+    else:
+        os.environ[ROBOT_DIRS_ENV] = outside  # as it was, to the character
 
 
 def _files_in(d: Path) -> list[Path]:
